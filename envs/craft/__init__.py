@@ -1,0 +1,45 @@
+"""Craft grid world (psketch / OMPN setup): batched simulator, gym wrappers, expert, features."""
+
+from envs.craft.batch import CraftBatch
+from envs.craft.env import CraftEnv, CraftVectorEnv, craft_observation_space
+from envs.craft.expert import CraftExpert
+from envs.craft.observation import OBS_DIM, OBS_NAMES, OMPN_DIM, ompn_features
+from envs.craft.render import render_batch, render_state
+from envs.craft.world import (
+    ACTION_NAMES,
+    KIND_NAMES,
+    N_ACTIONS,
+    N_KINDS,
+    NAMED_TASKS,
+    SUBTASK_LETTERS,
+    SUBTASK_NAMES,
+    default_max_steps,
+    parse_task,
+    task_code,
+    task_description,
+)
+
+__all__ = [
+    "ACTION_NAMES",
+    "KIND_NAMES",
+    "NAMED_TASKS",
+    "N_ACTIONS",
+    "N_KINDS",
+    "OBS_DIM",
+    "OBS_NAMES",
+    "OMPN_DIM",
+    "SUBTASK_LETTERS",
+    "SUBTASK_NAMES",
+    "CraftBatch",
+    "CraftEnv",
+    "CraftExpert",
+    "CraftVectorEnv",
+    "craft_observation_space",
+    "default_max_steps",
+    "ompn_features",
+    "parse_task",
+    "render_batch",
+    "render_state",
+    "task_code",
+    "task_description",
+]

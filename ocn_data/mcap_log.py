@@ -1,0 +1,114 @@
+"""Demonstrations as an MCAP log: one JSON message per step on each of four JSON-schema channels.
+
+Channels: `/observation` (the named state vector), `/action`, `/reward` (reward and done) and
+`/subtask` (the ground-truth subtask being worked on and whether this step completes it). Every
+message carries its episode and frame index. Episodes are laid end to end on the log clock at
+the dataset's fps, so Foxglove plays them back as one timeline. The state's element names are
+stored once, as the MCAP metadata record `observation.state`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from mcap.writer import CompressionType, Writer
+
+from ocn_data.episodes import EpisodeChunk
+
+STEP_KEYS = {"episode_index": {"type": "integer"}, "frame_index": {"type": "integer"}}
+
+
+def _schema(title: str, properties: dict) -> bytes:
+    return json.dumps(
+        {"title": title, "type": "object", "properties": {**STEP_KEYS, **properties}}
+    ).encode()
+
+
+class DemoMcapWriter:
+    """Stream chunks of episodes into an MCAP file; `close()` writes the summary and index."""
+
+    def __init__(self, path: str | Path, fps: int, state_names: list[str]) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = self.path.open("wb")
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library="ocn record_demos")
+        self._ns_per_frame = int(1e9 / fps)
+        self._frame = 0
+        self._writer.add_metadata("observation.state", {"names": json.dumps(list(state_names))})
+        channels = {
+            "/observation": _schema(
+                "Observation",
+                {"state": {"type": "array", "items": {"type": "number"}}},
+            ),
+            "/action": _schema("Action", {"action": {"type": "array", "items": {"type": "number"}}}),
+            "/reward": _schema("Reward", {"reward": {"type": "number"}, "done": {"type": "boolean"}}),
+            "/subtask": _schema(
+                "Subtask",
+                {
+                    "task": {"type": "string"},
+                    "subtask_index": {"type": "integer"},
+                    "subtask": {"type": "string"},
+                    "subtask_end": {"type": "boolean"},
+                },
+            ),
+        }
+        self._channels = {}
+        for topic, schema in channels.items():
+            schema_id = self._writer.register_schema(name=topic.strip("/"), encoding="jsonschema", data=schema)
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding="json", schema_id=schema_id
+            )
+
+    def write(self, chunk: EpisodeChunk, first_episode_index: int) -> None:
+        """Log every step of the chunk; `first_episode_index` is the chunk's first dataset episode."""
+        state = chunk.columns["observation.state"].reshape(chunk.num_frames, -1).tolist()
+        action = chunk.columns["action"].reshape(chunk.num_frames, -1).tolist()
+        reward = chunk.columns["next.reward"].reshape(-1).tolist()
+        done = chunk.columns["next.done"].reshape(-1).tolist()
+        sub_index = chunk.columns["subtask.index"].reshape(-1).tolist()
+        sub_end = chunk.columns["subtask.end"].reshape(-1).tolist()
+        row = 0
+        for e, (length, task, segments) in enumerate(zip(chunk.lengths, chunk.tasks, chunk.segments, strict=True)):
+            episode = first_episode_index + e
+            names = [name for _, name in segments]
+            for frame in range(int(length)):
+                step = {"episode_index": episode, "frame_index": frame}
+                stamp = self._frame * self._ns_per_frame
+                self._put("/observation", stamp, {**step, "state": state[row]})
+                self._put("/action", stamp, {**step, "action": action[row]})
+                self._put("/reward", stamp, {**step, "reward": reward[row], "done": done[row]})
+                self._put(
+                    "/subtask",
+                    stamp,
+                    {
+                        **step,
+                        "task": task,
+                        "subtask_index": sub_index[row],
+                        "subtask": names[sub_index[row]],
+                        "subtask_end": sub_end[row],
+                    },
+                )
+                row += 1
+                self._frame += 1
+
+    def _put(self, topic: str, stamp: int, message: dict) -> None:
+        self._writer.add_message(
+            channel_id=self._channels[topic], log_time=stamp, publish_time=stamp, data=json.dumps(message).encode()
+        )
+
+    def close(self) -> None:
+        self._writer.finish()
+        self._file.close()
+
+
+def read_mcap_messages(path: str | Path) -> dict[str, list[dict]]:
+    """Every message of a demo MCAP, decoded, grouped by topic (for tests and quick inspection)."""
+    from mcap.reader import make_reader
+
+    out: dict[str, list[dict]] = {}
+    with Path(path).open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            out.setdefault(channel.topic, []).append(json.loads(message.data))
+    return out

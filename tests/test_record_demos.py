@@ -1,0 +1,218 @@
+"""record_demos end to end: real subprocesses, datasets read back by LeRobot, MCAP by its reader."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+from huggingface_hub import DatasetCard
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.utils.collate import lerobot_collate_fn
+
+from envs.craft.world import parse_task, task_description
+from ocn_data.mcap_log import read_mcap_messages
+
+RECORD = [sys.executable, "-m", "ocn_data.record_demos"]
+
+
+def run_record(*args: str, check: bool = True) -> subprocess.CompletedProcess:
+    proc = subprocess.run([*RECORD, *args], capture_output=True, text=True, timeout=300)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"record_demos failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return proc
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> tuple[Path, Path]:
+    base = tmp_path_factory.mktemp("rec")
+    root, mcap = base / "ds", base / "demo.mcap"
+    run_record("--tasks", "AC,CD,DA", "--episodes-per-task", "20", "--root", str(root),
+               "--repo-id", "local/test_s1", "--seed", "3", "--mcap", str(mcap), "--chunk-episodes", "25")
+    return root, mcap
+
+
+def test_dataset_reads_back_in_lerobot(recorded):
+    root, _ = recorded
+    ds = LeRobotDataset("local/test_s1", root=root)
+    assert ds.num_episodes == 60
+    assert ds.meta.info.splits == {"train": "0:48", "val": "48:60"}
+    assert set(ds.meta.tasks.index) == {task_description(parse_task(t)) for t in ("AC", "CD", "DA")}
+    assert len(list((root / "data").glob("*/*.parquet"))) == 3  # chunks of 25, 25 and 10 episodes
+    for key in ("observation.state", "action", "next.reward", "next.done", "subtask.index", "subtask.id", "subtask.end"):
+        assert key in ds.meta.features
+    assert not any(k.startswith("observation.") for k in ds.meta.features if k.startswith("subtask"))
+
+    table = ds.hf_dataset.with_format("numpy")
+    episode = np.asarray(table["episode_index"])
+    reward = np.asarray(table["next.reward"])
+    done = np.asarray(table["next.done"])
+    sub_end = np.asarray(table["subtask.end"])
+    sub_index = np.asarray(table["subtask.index"])
+    for e in range(ds.num_episodes):
+        rows = episode == e
+        task = ds.meta.episodes[e]["tasks"][0]
+        n_subtasks = len(parse_task(task))
+        assert reward[rows].sum() == n_subtasks  # dense reward: one per subtask
+        assert sub_end[rows].sum() == n_subtasks
+        assert done[rows][-1] and not done[rows][:-1].any()
+        np.testing.assert_array_equal(np.flatnonzero(np.diff(sub_index[rows])), np.flatnonzero(sub_end[rows])[:-1])
+
+
+def test_stats_match_the_data(recorded):
+    root, _ = recorded
+    ds = LeRobotDataset("local/test_s1", root=root)
+    state = np.asarray(ds.hf_dataset.with_format("numpy")["observation.state"], dtype=np.float64)
+    stats = ds.meta.stats["observation.state"]
+    np.testing.assert_allclose(stats["mean"], state.mean(0), atol=1e-9)
+    np.testing.assert_allclose(stats["std"], state.std(0), atol=1e-9)
+    np.testing.assert_array_equal(stats["max"], state.max(0))
+    episodes = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
+    length = episodes[0]["length"]
+    np.testing.assert_allclose(episodes[0]["stats/observation.state/q50"], np.quantile(state[:length], 0.5, axis=0))
+    np.testing.assert_allclose(episodes[1]["stats/observation.state/min"], state[length : length + episodes[1]["length"]].min(0))
+
+
+def test_windowed_access_pads_past_episode_end(recorded):
+    root, _ = recorded
+    window = [i / 10 for i in range(40)]
+    ds = LeRobotDataset("local/test_s1", root=root, delta_timestamps={"observation.state": window, "action": window})
+    item = ds[0]
+    length = ds.meta.episodes[0]["length"]
+    assert item["observation.state"].shape == (40, 81)
+    assert item["action_is_pad"].sum().item() == 40 - length
+
+
+def test_mcap_reads_back(recorded):
+    root, mcap = recorded
+    ds = LeRobotDataset("local/test_s1", root=root)
+    topics = read_mcap_messages(mcap)
+    assert set(topics) == {"/observation", "/action", "/reward", "/subtask"}
+    for messages in topics.values():
+        assert len(messages) == ds.num_frames
+    first = ds[0]
+    assert topics["/observation"][0]["state"] == first["observation.state"].tolist()
+    assert topics["/action"][0]["action"] == [int(first["action"])]
+    assert topics["/subtask"][0]["subtask"] == ds.meta.episodes[0]["tasks"][0].split(", ")[0]
+    from mcap.reader import make_reader
+
+    with open(mcap, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
+    assert {c.message_encoding for c in summary.channels.values()} == {"json"}
+
+
+def test_dataset_card(recorded):
+    root, _ = recorded
+    card = DatasetCard.load(root / "README.md")
+    assert {"LeRobot", "robotics"} <= set(card.data.tags)
+    assert card.data.license == "apache-2.0"
+    assert "robotics" in card.data.task_categories
+    text = card.text
+    assert "record_demos --tasks AC,CD,DA --episodes-per-task 20" in text
+    assert "| get wood, get iron | `AC` | 20 |" in text
+
+
+def test_resume_appends_and_fresh_root_is_required(recorded, tmp_path):
+    root, _ = recorded
+    again = run_record("--tasks", "AC", "--episodes-per-task", "2", "--root", str(root), "--repo-id", "local/test_s1",
+                       check=False)
+    assert again.returncode == 2 and "already exists" in again.stderr and "--resume" in again.stderr
+
+    copy = tmp_path / "copy"
+    subprocess.run(["cp", "-r", str(root), str(copy)], check=True)
+    run_record("--tasks", "AC", "--episodes-per-task", "5", "--root", str(copy), "--repo-id", "local/test_s1",
+               "--seed", "3", "--resume")
+    ds = LeRobotDataset("local/test_s1", root=copy)
+    assert ds.num_episodes == 65
+    assert ds.meta.info.splits == {"train": "0:52", "val": "52:65"}
+    # resumed attempts continue the seed stream: no map of the first session is recorded twice
+    states = ds.hf_dataset.with_format("numpy")
+    first_frames = np.asarray(states["observation.state"])[np.asarray(states["frame_index"]) == 0]
+    assert len(np.unique(first_frames, axis=0)) == 65
+    assert "| get wood, get iron | `AC` | 25 |" in (copy / "README.md").read_text()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--tasks", "AX"], "valid"),
+        (["--tasks", "make bed"], "valid"),
+        (["--tasks", "AC,AC"], "twice"),
+        (["--tasks", "AC", "--resume"], "no LeRobot dataset"),
+    ],
+)
+def test_bad_input_is_a_clear_error(tmp_path, args, message):
+    proc = run_record("--episodes-per-task", "2", "--root", str(tmp_path / "new"), "--repo-id", "local/x", *args,
+                      check=False)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert message in proc.stderr
+    assert not (tmp_path / "new").exists() or "--resume" in args
+
+
+def test_unknown_letter_lists_valid_subtasks(tmp_path):
+    proc = run_record("--tasks", "AZ", "--episodes-per-task", "1", "--root", str(tmp_path / "r"), "--repo-id", "l/x",
+                      check=False)
+    for letter, name in (("A", "get wood"), ("D", "get grass")):
+        assert letter in proc.stderr and name in proc.stderr
+
+
+def test_interrupted_recording_keeps_finished_episodes(tmp_path):
+    root = tmp_path / "ds"
+    proc = subprocess.Popen(
+        [*RECORD, "--tasks", "AC,CD,DA", "--episodes-per-task", "200000", "--root", str(root),
+         "--repo-id", "local/interrupted", "--chunk-episodes", "500", "--batch-size", "64"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    first_file = root / "data" / "chunk-000" / "file-001.parquet"
+    deadline = time.time() + 120
+    while not first_file.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert first_file.exists(), "recording produced no data file in time"
+    os.kill(proc.pid, signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-2000:]
+    assert "interrupted" in out
+    ds = LeRobotDataset("local/interrupted", root=root)
+    assert 1000 <= ds.num_episodes < 600000
+    assert ds.num_frames == len(ds.hf_dataset)
+    assert ds.meta.info.total_episodes == ds.num_episodes == len(ds.meta.episodes)
+
+
+def test_subtask_annotations_as_native_language_rows(tmp_path):
+    root = tmp_path / "ds"
+    run_record("--tasks", "ADC", "--episodes-per-task", "4", "--root", str(root), "--repo-id", "local/lang",
+               "--subtask-annotations")
+    ds = LeRobotDataset("local/lang", root=root)
+    assert ds.meta.has_language_columns
+    table = ds.hf_dataset.with_format("numpy")
+    frame_index = np.asarray(table["frame_index"])
+    sub_index = np.asarray(table["subtask.index"])
+    item = ds[0]
+    rows = item["language_persistent"]
+    assert [r["content"] for r in rows] == ["get wood", "get grass", "get iron"]
+    assert all(r["style"] == "subtask" and r["role"] == "assistant" and r["camera"] is None for r in rows)
+    episode0 = sub_index[: ds.meta.episodes[0]["length"]]
+    starts = [int(frame_index[i]) for i in np.flatnonzero(np.diff(episode0, prepend=-1))]
+    assert [round(r["timestamp"] * 10) for r in rows] == starts
+    assert item["language_events"] == []
+    batch = lerobot_collate_fn([ds[i] for i in range(4)])  # what lerobot-train batches with
+    assert isinstance(batch["observation.state"], torch.Tensor) and batch["observation.state"].shape == (4, 81)
+
+
+def test_video_feature_decodes(tmp_path):
+    root = tmp_path / "ds"
+    run_record("--tasks", "AC", "--episodes-per-task", "2", "--root", str(root), "--repo-id", "local/vid", "--video")
+    ds = LeRobotDataset("local/vid", root=root)
+    assert ds.meta.video_keys == ["observation.image"]
+    frame = ds[ds.meta.episodes[1]["dataset_from_index"]]["observation.image"]
+    assert frame.shape == (3, 160, 160)
+    assert 0.0 <= frame.min() and frame.max() <= 1.0 and frame.std() > 0.05
