@@ -110,6 +110,7 @@ def run_env_bench(args: argparse.Namespace) -> None:
     result = {
         "benchmark": "ocn-bench env",
         "machine": machine(),
+        "note": args.note,
         "env_steps": bench_env_steps(args.steps),
         "record_demos": bench_record(args.episodes_per_task, mcap=False),
         "record_demos_with_mcap": bench_record(args.episodes_per_task, mcap=True),
@@ -126,6 +127,8 @@ def _markdown(r: dict) -> str:
     return (
         "# Craft env and recording throughput\n\n"
         f"Command: `ocn-bench env`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}.\n\n"
+        + (f"Conditions: {r['note']}\n\n" if r["note"] else "")
+        +
         "| what | rate |\n|---|---|\n"
         f"| one `CraftEnv` (gymnasium API), random actions | {s['single_env_steps_per_s']:,.0f} steps/s |\n"
         f"| 64 envs batched, `CraftBatch.step` | {s['batched_64_core_steps_per_s']:,.0f} env steps/s |\n"
@@ -146,6 +149,7 @@ def main(argv: list[str] | None = None) -> None:
     env.add_argument("--steps", type=int, default=20000, help="single-env steps per timing")
     env.add_argument("--episodes-per-task", type=int, default=6000, help="record_demos size (S1 is 6000)")
     env.add_argument("--out", default=str(RESULTS / "bench_env.json"))
+    env.add_argument("--note", default="", help="conditions of the run, stored with the results")
     env.set_defaults(func=run_env_bench)
     args = parser.parse_args(argv)
     args.func(args)
