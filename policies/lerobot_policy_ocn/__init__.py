@@ -6,3 +6,4 @@ policy type and the LeRobot env configs).
 """
 
 import envs  # noqa: F401  (registers OCN/Craft-v0 and OCN/CraftFull-v0)
+import policies.ocn  # noqa: F401  (registers the `ocn` policy type)

@@ -1,0 +1,169 @@
+"""Speed measurements of the OCN policy, as functions for benchmark tools to call.
+
+The baseline for the stacked cell is `LoopedCell`: the same parameters evaluated one module at a
+time in a Python loop, i.e. what a list of per-option networks would cost.
+"""
+
+import copy
+import statistics
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import torch
+from torch import Tensor
+
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+from .cell import CellOutput, StackedCell
+from .configuration_ocn import OCNConfig
+from .encoders import OMPN_FEATURE_DIM
+from .modeling_ocn import OCNPolicy
+
+BENCH_TASKS = ["task 0", "task 1", "task 2"]
+
+
+class LoopedCell(StackedCell):
+    """A `StackedCell` evaluated with one matmul chain per module (the per-option loop baseline)."""
+
+    @classmethod
+    def from_cell(cls, cell: StackedCell) -> "LoopedCell":
+        """A looped copy holding the same parameter values as `cell`."""
+        n_modules, in_dim, width = cell.w_x.shape
+        depth = len(cell.w_mlp) + 1
+        looped = cls(n_modules, in_dim, cell.hidden_size, width, depth, cell.n_out, cell.with_end)
+        looped.load_state_dict(cell.state_dict())
+        return looped
+
+    def project(self, x: Tensor) -> Tensor:
+        parts = [x @ self.w_x[i] + self.b_in[i] for i in range(self.n_modules)]
+        return torch.stack(parts, dim=-3)
+
+    def step(self, x_proj: Tensor, h: Tensor) -> CellOutput:
+        outs = []
+        for i in range(self.n_modules):
+            act = torch.tanh(x_proj[i] + h[i] @ self.w_h[i])
+            for weight, bias in zip(self.w_mlp, self.b_mlp, strict=True):
+                act = torch.tanh(act @ weight[i] + bias[i])
+            outs.append(act @ self.w_out[i] + self.b_out[i])
+        return self._heads(torch.stack(outs))
+
+
+def use_looped_cells(policy: OCNPolicy) -> OCNPolicy:
+    """Swap the policy's controller and option cells for looped copies with the same weights."""
+    policy.core.controller = LoopedCell.from_cell(policy.core.controller)
+    policy.core.options = LoopedCell.from_cell(policy.core.options)
+    return policy
+
+
+def make_bench_policy(
+    n_options: int = 3,
+    hidden_size: int = 128,
+    obs_dim: int = OMPN_FEATURE_DIM,
+    n_actions: int = 5,
+    window: int = 32,
+) -> OCNPolicy:
+    """A discrete-action OCN on float observations of Craft's OMPN width (identity encoder)."""
+    config = OCNConfig(
+        device="cpu",
+        n_options=n_options,
+        hidden_size=hidden_size,
+        mlp_hidden_size=hidden_size,
+        window_size=window,
+        window_start="any",
+        obs_encoder="identity",
+        n_actions=n_actions,
+        tasks=list(BENCH_TASKS),
+        input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (obs_dim,))},
+        output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))},
+    )
+    return OCNPolicy(config)
+
+
+def random_batch(policy: OCNPolicy, batch_size: int, window: int) -> dict:
+    """A training batch of random one-hot-like observations and actions, no padding."""
+    obs_dim = policy.encoder.out_dim
+    return {
+        OBS_STATE: (torch.rand(batch_size, window, obs_dim) < 0.05).float(),
+        ACTION: torch.randint(0, policy.config.n_actions, (batch_size, window, 1)).float(),
+        f"{ACTION}_is_pad": torch.zeros(batch_size, window, dtype=torch.bool),
+        "task": [BENCH_TASKS[i % len(BENCH_TASKS)] for i in range(batch_size)],
+        "timestamp": torch.zeros(batch_size),
+    }
+
+
+@contextmanager
+def torch_threads(threads: int) -> Iterator[None]:
+    """Temporarily run torch's CPU ops on `threads` threads."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+def train_frames_per_second(policy: OCNPolicy, batch: dict, repeats: int = 3) -> float:
+    """Frames per second of forward + backward: the fastest of `repeats` timed runs after a warm-up.
+
+    The fastest run, not the median, because these machines share their cores with other jobs and
+    contention only ever slows a run down.
+    """
+    frames = batch[OBS_STATE].shape[0] * batch[OBS_STATE].shape[1]
+    times = []
+    for run in range(repeats + 1):
+        policy.zero_grad(set_to_none=True)
+        begin = time.perf_counter()
+        loss, _ = policy.forward(batch)
+        loss.backward()
+        if run:
+            times.append(time.perf_counter() - begin)
+    return frames / min(times)
+
+
+def compare_stacked_vs_loop(
+    batch_size: int = 512,
+    window: int = 32,
+    n_options: int = 3,
+    hidden_size: int = 128,
+    threads: int = 2,
+    rounds: int = 3,
+) -> dict[str, float]:
+    """Training throughput of the stacked cells vs. the per-option loop, same weights and batch.
+
+    The two are measured in alternation for `rounds` rounds so that both see the same load.
+    """
+    with torch_threads(threads):
+        stacked = make_bench_policy(n_options=n_options, hidden_size=hidden_size, window=window)
+        looped = use_looped_cells(copy.deepcopy(stacked))
+        batch = random_batch(stacked, batch_size, window)
+        best = {"stacked": 0.0, "loop": 0.0}
+        for _ in range(rounds):
+            best["stacked"] = max(best["stacked"], train_frames_per_second(stacked, batch, repeats=1))
+            best["loop"] = max(best["loop"], train_frames_per_second(looped, batch, repeats=1))
+    return {
+        "stacked_frames_per_s": best["stacked"],
+        "loop_frames_per_s": best["loop"],
+        "speedup": best["stacked"] / best["loop"],
+    }
+
+
+def select_action_latency(
+    policy: OCNPolicy, batch_size: int = 1, steps: int = 200, threads: int = 1
+) -> float:
+    """Seconds per `select_action` call for `batch_size` envs (median over `steps` calls)."""
+    obs_dim = policy.encoder.out_dim
+    observation = {
+        OBS_STATE: (torch.rand(batch_size, obs_dim) < 0.05).float(),
+        "task": [policy.config.tasks[0]] * batch_size,
+    }
+    times = []
+    with torch_threads(threads):
+        policy.eval()
+        policy.reset()
+        for _ in range(steps):
+            begin = time.perf_counter()
+            policy.select_action(observation)
+            times.append(time.perf_counter() - begin)
+    return statistics.median(times)

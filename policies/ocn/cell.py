@@ -1,0 +1,96 @@
+"""The OCN cell network (paper eq. 3-6), stacked over a leading module dimension.
+
+The N options are one `StackedCell` with weights of shape [N, in, out], so one time step of every
+option is a handful of batched matmuls instead of a Python loop; the controller is the same class
+with N = 1. Tensors inside the cell are module-major: [N, B, features].
+"""
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+
+class CellOutput(NamedTuple):
+    """One step of N cells: raw output head `logits` [N, B, n_out], new state `hidden` [N, B, d_hid],
+    termination probability `end` [N, B] (None for cells built without a termination head)."""
+
+    logits: Tensor
+    hidden: Tensor
+    end: Tensor | None
+
+
+def _stacked_uniform(n_modules: int, fan_in: int, *shape: int) -> nn.Parameter:
+    """nn.Linear's default init, drawn independently for each module."""
+    bound = 1.0 / math.sqrt(fan_in)
+    return nn.Parameter(torch.empty(n_modules, *shape).uniform_(-bound, bound))
+
+
+class StackedCell(nn.Module):
+    """N independent cells: h^ = MLP([x, h]), out = W_out h^, h = tanh(W_hid h^), e = sigmoid(w_end h^).
+
+    The first MLP layer is split into an observation part and a recurrent part so that the
+    observation part, which does not depend on the recurrence, can be computed for a whole window
+    in one matmul (`project`) before the time loop; `step` then only does the recurrent work.
+    """
+
+    def __init__(
+        self,
+        n_modules: int,
+        in_dim: int,
+        hidden_size: int,
+        mlp_hidden_size: int,
+        mlp_depth: int,
+        n_out: int,
+        with_end: bool = True,
+    ) -> None:
+        super().__init__()
+        self.n_modules = n_modules
+        self.hidden_size = hidden_size
+        self.n_out = n_out
+        self.with_end = with_end
+        fan_in = in_dim + hidden_size
+        self.w_x = _stacked_uniform(n_modules, fan_in, in_dim, mlp_hidden_size)
+        self.w_h = _stacked_uniform(n_modules, fan_in, hidden_size, mlp_hidden_size)
+        self.b_in = _stacked_uniform(n_modules, fan_in, 1, mlp_hidden_size)
+        self.w_mlp = nn.ParameterList(
+            _stacked_uniform(n_modules, mlp_hidden_size, mlp_hidden_size, mlp_hidden_size)
+            for _ in range(mlp_depth - 1)
+        )
+        self.b_mlp = nn.ParameterList(
+            _stacked_uniform(n_modules, mlp_hidden_size, 1, mlp_hidden_size) for _ in range(mlp_depth - 1)
+        )
+        head_width = n_out + hidden_size + int(with_end)
+        self.w_out = _stacked_uniform(n_modules, mlp_hidden_size, mlp_hidden_size, head_width)
+        self.b_out = _stacked_uniform(n_modules, mlp_hidden_size, 1, head_width)
+
+    def project(self, x: Tensor) -> Tensor:
+        """Observation part of the first layer, bias included: x [..., B, in] -> [..., N, B, d_mlp]."""
+        n, in_dim, width = self.w_x.shape
+        flat = x.reshape(-1, in_dim) @ self.w_x.transpose(0, 1).reshape(in_dim, n * width)
+        stacked = flat.view(*x.shape[:-1], n, width).movedim(-2, -3)
+        return stacked + self.b_in
+
+    def step(self, x_proj: Tensor, h: Tensor) -> CellOutput:
+        """One step from projected observations x_proj [N, B, d_mlp] and states h [N, B, d_hid].
+
+        h may also be [N, 1, d_hid], one state shared by the whole batch (the learned initial
+        states): its recurrent term is then computed once and broadcast.
+        """
+        if h.shape[1] == x_proj.shape[1]:
+            act = torch.tanh(torch.baddbmm(x_proj, h, self.w_h))
+        else:
+            act = torch.tanh(x_proj + torch.bmm(h, self.w_h))
+        for weight, bias in zip(self.w_mlp, self.b_mlp, strict=True):
+            act = torch.tanh(torch.baddbmm(bias, act, weight))
+        return self._heads(torch.baddbmm(self.b_out, act, self.w_out))
+
+    def _heads(self, out: Tensor) -> CellOutput:
+        logits, hidden, *end = out.split([self.n_out, self.hidden_size, int(self.with_end)], dim=-1)
+        end_prob = torch.sigmoid(end[0].squeeze(-1)) if self.with_end else None
+        return CellOutput(logits, torch.tanh(hidden), end_prob)
+
+    def forward(self, x: Tensor, h: Tensor) -> CellOutput:
+        """One step from raw observations x [B, in] (shared by all modules) and states h [N, B, d_hid]."""
+        return self.step(self.project(x), h)

@@ -1,0 +1,123 @@
+"""Configuration of the Option-Controller Network (OCN) policy, registered with LeRobot as `ocn`."""
+
+from dataclasses import dataclass, field
+
+from lerobot.configs import NormalizationMode, PreTrainedConfig
+from lerobot.configs.types import FeatureType
+from lerobot.optim import AdamConfig
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+OBS_ENCODERS = ("craft", "identity")
+ACTION_TYPES = ("discrete", "continuous")
+WINDOW_STARTS = ("episode_start_only", "any")
+INFERENCE_MODES = ("sample", "greedy")
+CRAFT_STATE_DIM = 81
+
+
+def _check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ValueError(f"`{name}` must be one of {choices}, got {value!r}.")
+
+
+@PreTrainedConfig.register_subclass("ocn")
+@dataclass
+class OCNConfig(PreTrainedConfig):
+    """Hyperparameters of OCN (paper section 3, appendix A.2) plus the LeRobot plumbing.
+
+    Training windows: LeRobot's sampler starts a `window_size`-frame window at every frame of every
+    episode. `window_start` says what OCN does with a window that starts mid-episode:
+    - "episode_start_only" (default): only windows whose first frame is an episode start (its
+      `timestamp` is 0) enter the loss; the others are dropped before the recurrence runs. This is
+      the paper's setting (the controller starts every demonstration from its task's initial state),
+      at the price of using about one window per episode of each batch.
+    - "any": every window start is treated as t = 1, i.e. as a fresh episode. Uses every window but
+      tells the controller that a task restarts where it does not.
+    """
+
+    n_options: int = 3
+    hidden_size: int = 128
+    mlp_hidden_size: int = 128
+    mlp_depth: int = 2
+    temperature: float = 10.0
+
+    window_size: int = 64
+    window_start: str = "episode_start_only"
+
+    obs_encoder: str = "craft"
+    action_type: str = "discrete"
+    n_actions: int = 5
+    log_std_min: float = -5.0
+    log_std_max: float = 2.0
+
+    # Task strings in task-index order; filled from the dataset's metadata when the policy is built.
+    tasks: list[str] = field(default_factory=list)
+
+    inference_mode: str = "sample"
+
+    optimizer_lr: float = 1e-3
+    optimizer_grad_clip_norm: float = 10.0
+
+    # Empty means "derive from obs_encoder and action_type" (see `__post_init__`).
+    normalization_mapping: dict[str, NormalizationMode] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_choice("obs_encoder", self.obs_encoder, OBS_ENCODERS)
+        _check_choice("action_type", self.action_type, ACTION_TYPES)
+        _check_choice("window_start", self.window_start, WINDOW_STARTS)
+        _check_choice("inference_mode", self.inference_mode, INFERENCE_MODES)
+        if self.n_options < 1 or self.mlp_depth < 1 or self.window_size < 1:
+            raise ValueError("n_options, mlp_depth and window_size must all be >= 1.")
+        if self.temperature <= 0:
+            raise ValueError(f"temperature must be > 0, got {self.temperature}.")
+        if not self.normalization_mapping:
+            self.normalization_mapping = self._default_normalization()
+
+    def _default_normalization(self) -> dict[str, NormalizationMode]:
+        """Craft states are symbolic ids and discrete actions are indices: neither may be rescaled."""
+        state = NormalizationMode.IDENTITY if self.obs_encoder == "craft" else NormalizationMode.MEAN_STD
+        action = NormalizationMode.IDENTITY if self.action_type == "discrete" else NormalizationMode.MEAN_STD
+        return {"STATE": state, "ACTION": action}
+
+    @property
+    def observation_delta_indices(self) -> list[int]:
+        return list(range(self.window_size))
+
+    @property
+    def action_delta_indices(self) -> list[int]:
+        return list(range(self.window_size))
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
+
+    @property
+    def action_dim(self) -> int:
+        """Width of one action in the batch: 1 index for discrete actions, the vector size otherwise."""
+        return self.output_features[ACTION].shape[0]
+
+    @property
+    def state_dim(self) -> int:
+        return self.input_features[OBS_STATE].shape[0]
+
+    def get_optimizer_preset(self) -> AdamConfig:
+        return AdamConfig(lr=self.optimizer_lr, grad_clip_norm=self.optimizer_grad_clip_norm)
+
+    def get_scheduler_preset(self) -> None:
+        return None
+
+    def validate_features(self) -> None:
+        state = (self.input_features or {}).get(OBS_STATE)
+        if state is None or state.type is not FeatureType.STATE:
+            raise ValueError(f"OCN needs a `{OBS_STATE}` STATE input feature.")
+        action = (self.output_features or {}).get(ACTION)
+        if action is None:
+            raise ValueError(f"OCN needs an `{ACTION}` output feature.")
+        if self.obs_encoder == "craft" and tuple(state.shape) != (CRAFT_STATE_DIM,):
+            raise ValueError(
+                f"The craft encoder expects a compact state of shape ({CRAFT_STATE_DIM},), got {state.shape}."
+            )
+        if self.action_type == "discrete" and tuple(action.shape) != (1,):
+            raise ValueError(f"Discrete actions must be stored as one index, shape (1,); got {action.shape}.")
+        if self.action_type == "discrete" and self.n_actions < 2:
+            raise ValueError(f"n_actions must be >= 2 for discrete actions, got {self.n_actions}.")

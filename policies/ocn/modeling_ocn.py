@@ -1,0 +1,202 @@
+"""OCN as a LeRobot policy: batch plumbing, the NLL loss (eq. 18), stateful inference and parsing.
+
+Batches arrive as LeRobot builds them: `observation.state` [B, T, S] and `action` [B, T, A]
+windows with `*_is_pad` masks [B, T], the task strings in `batch["task"]`, and the window's first
+frame `timestamp` [B], which is 0 exactly at an episode start (LeRobot writes frame_index / fps).
+"""
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+from .configuration_ocn import OCNConfig
+from .encoders import make_encoder
+from .heads import make_action_head, mixture_log_prob
+from .recurrence import OCNCore, OCNState, StepOutput
+
+PAD_KEYS = (f"{ACTION}_is_pad", f"{OBS_STATE}_is_pad")
+EPISODE_START_TOLERANCE_S = 1e-6
+
+
+@dataclass
+class StepReport:
+    """Readout of the latest `select_action` step: p^c [B, N], option = argmax p^c [B], e_t [B]."""
+
+    p_c: Tensor
+    option: Tensor
+    end: Tensor
+
+
+def tasks_from_meta(dataset_meta: Any) -> list[str]:
+    """Task strings of a LeRobot dataset, in task-index order."""
+    if dataset_meta.tasks is None:
+        return []
+    return [str(task) for task in dataset_meta.tasks.sort_values("task_index").index]
+
+
+def frame_mask(batch: dict[str, Any]) -> Tensor:
+    """Frames [B, T] that are real data: neither the action nor the state is padding."""
+    valid = torch.ones(batch[OBS_STATE].shape[:2], dtype=torch.bool, device=batch[OBS_STATE].device)
+    for key in PAD_KEYS:
+        if key in batch:
+            valid &= ~batch[key].bool()
+    return valid
+
+
+class OCNPolicy(PreTrainedPolicy):
+    """Option-Controller Network: a shared controller over N options, one initial state per task."""
+
+    config_class = OCNConfig
+    name = "ocn"
+
+    def __init__(
+        self,
+        config: OCNConfig,
+        dataset_stats: dict[str, dict[str, Tensor]] | None = None,
+        dataset_meta: Any | None = None,
+        **kwargs: Any,
+    ) -> None:
+        """`dataset_stats` is accepted for LeRobot's factory but unused: normalisation lives in the
+        processors. `dataset_meta` fills `config.tasks` when it is empty, so the saved config keeps them."""
+        super().__init__(config)
+        config.validate_features()
+        if not config.tasks and dataset_meta is not None:
+            config.tasks = tasks_from_meta(dataset_meta)
+        if not config.tasks:
+            raise ValueError("OCN needs its task list: set `tasks` or build the policy from a dataset.")
+        self._task_ids = {task: i for i, task in enumerate(config.tasks)}
+        self.encoder = make_encoder(config)
+        self.head = make_action_head(config)
+        self.core = OCNCore(
+            obs_dim=self.encoder.out_dim,
+            n_tasks=len(config.tasks),
+            n_options=config.n_options,
+            hidden_size=config.hidden_size,
+            mlp_hidden_size=config.mlp_hidden_size,
+            mlp_depth=config.mlp_depth,
+            n_params=self.head.n_params,
+            temperature=config.temperature,
+        )
+        self.reset()
+
+    def get_optim_params(self) -> Any:
+        return self.parameters()
+
+    def reset(self) -> None:
+        """Forget the recurrent state: the next `select_action` is t = 1 of new episodes."""
+        self._state: OCNState | None = None
+        self.last_step: StepReport | None = None
+
+    def task_index(self, tasks: Sequence[str] | str | None, batch_size: int) -> Tensor:
+        """Map task strings to rows of the per-task initial controller states."""
+        if tasks is None:
+            raise ValueError(f"The batch has no 'task'; OCN needs one of {self.config.tasks}.")
+        if isinstance(tasks, str):
+            tasks = [tasks] * batch_size
+        for task in tasks:
+            if task not in self._task_ids:
+                raise ValueError(f"Unknown task {task!r}; this OCN knows the tasks {self.config.tasks}.")
+        device = self.core.controller_init.device
+        return torch.tensor([self._task_ids[task] for task in tasks], dtype=torch.long, device=device)
+
+    def _unroll(self, state: Tensor, tasks: Sequence[str]) -> StepOutput:
+        """Recurrence over windows [B, T, S] that each start an episode; outputs are time-major."""
+        batch, steps = state.shape[:2]
+        # Transpose the stored state rather than the (wider) features: the encoder then writes time-major.
+        x = self.encoder(state.transpose(0, 1).contiguous())
+        start = torch.zeros(steps, batch, dtype=torch.bool, device=x.device)
+        start[0] = True
+        initial = self.core.initial_state(self.task_index(tasks, batch))
+        return self.core.unroll(x, initial, start)[1]
+
+    def _usable_windows(self, batch: dict[str, Any]) -> Tensor:
+        """Windows [B] that enter the loss under `config.window_start`."""
+        size = batch[OBS_STATE].shape[0]
+        if self.config.window_start == "any":
+            return torch.ones(size, dtype=torch.bool, device=batch[OBS_STATE].device)
+        if "timestamp" not in batch:
+            raise ValueError(
+                "window_start='episode_start_only' needs the batch's 'timestamp' to find episode starts."
+            )
+        first = batch["timestamp"].reshape(size, -1)[:, 0]
+        return first.abs() < EPISODE_START_TOLERANCE_S
+
+    def _action_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
+        """log p^a_t(a_t) [B, T] for time-major outputs and batch-major actions [B, T, A].
+
+        LeRobot hands one-wide action features over as [B, T] (no feature axis), hence the reshape.
+        """
+        action = action.reshape(*action.shape[:2], self.config.action_dim)
+        component = self.head.log_prob(out.params, action.transpose(0, 1))
+        return mixture_log_prob(out.weights, component).transpose(0, 1)
+
+    def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
+        """Masked mean NLL of the mixed action distribution over the usable windows."""
+        usable = self._usable_windows(batch)
+        rows = usable.nonzero().squeeze(-1)
+        tasks = [batch["task"][i] for i in rows.tolist()]
+        mask = frame_mask(batch)[rows].float()
+        out = self._unroll(batch[OBS_STATE][rows], tasks)
+        nll = -self._action_log_prob(out, batch[ACTION][rows]) * mask
+        frames = mask.sum()
+        loss = nll.sum() / frames.clamp_min(1.0)
+        later = mask[:, 1:]
+        end = out.end[1:].detach().transpose(0, 1)
+        stats = {
+            "nll": loss.item(),
+            "windows_used": int(rows.numel()),
+            "frames_used": int(frames.item()),
+            "mean_end": float((end * later).sum() / later.sum().clamp_min(1.0)),
+        }
+        if reduction == "none":
+            per_window = torch.zeros(usable.shape[0], dtype=nll.dtype, device=nll.device)
+            per_window[rows] = nll.sum(1) / mask.sum(1).clamp_min(1.0)
+            return per_window, stats
+        return loss, stats
+
+    @torch.no_grad()
+    def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:
+        """Per-step hierarchy of whole episodes (each row starts at its episode's first frame).
+
+        Returns batch-major p_c [B, T, N], option = argmax p^c [B, T], end = e_t [B, T] (1 at t = 1,
+        where the controller always chooses), option_end = e_{i,t} [B, T, N], mask [B, T], and
+        action_log_prob [B, T] when the batch has actions.
+        """
+        out = self._unroll(batch[OBS_STATE], batch["task"])
+        result = {
+            "p_c": out.p_c.transpose(0, 1),
+            "option": out.p_c.argmax(-1).transpose(0, 1),
+            "end": out.end.transpose(0, 1),
+            "option_end": out.option_end.transpose(0, 1),
+            "mask": frame_mask(batch),
+        }
+        if ACTION in batch:
+            result["action_log_prob"] = self._action_log_prob(out, batch[ACTION])
+        return result
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
+        """Advance every env's recurrence by one step and return its action as a chunk [B, 1, A]."""
+        state = batch[OBS_STATE]
+        size = state.shape[0]
+        start = self._state is None
+        if start:
+            self._state = self.core.initial_state(self.task_index(batch.get("task"), size))
+        elif self._state.p_c.shape[0] != size:
+            raise ValueError(f"Batch size changed from {self._state.p_c.shape[0]} to {size} without reset().")
+        starts = torch.full((size,), start, dtype=torch.bool, device=state.device)
+        self._state, out = self.core.step(self._state, self.core.project(self.encoder(state)), starts)
+        self.last_step = StepReport(out.p_c, out.p_c.argmax(-1), out.end)
+        greedy = self.config.inference_mode == "greedy"
+        return self.head.choose(out.weights, out.params, greedy).unsqueeze(1)
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
+        """One action [B, A] per env; the recurrent state persists until `reset()`."""
+        return self.predict_action_chunk(batch)[:, 0]

@@ -1,0 +1,117 @@
+"""The bi-level option-controller recurrence (paper eq. 8-17) as a soft, fully differentiable step.
+
+Every step computes both branches of eq. 17: "not done" (options continue from their own states,
+the controller keeps its state and p^c_{t-1}) and "done" (the controller steps, the options restart
+from their learned initial states), and mixes them with e_t = sum_i p^c_{t-1,i} e_{i,t} (eq. 12).
+Step t = 1 (eq. 8-10) is the "done" branch alone, which is what a step with e_t forced to 1 gives,
+so episode starts are a per-row `start` flag rather than a separate code path.
+"""
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from .cell import StackedCell
+
+
+@dataclass
+class OCNState:
+    """Recurrent state after a step: h^c [B, d_hid], p^c [B, N], option states h^o [N, B, d_hid]."""
+
+    controller_h: Tensor
+    p_c: Tensor
+    option_h: Tensor
+
+
+class StepOutput(NamedTuple):
+    """What a step emits. The action distribution is a mixture over 2N option components: first
+    the N continuing options (weights (1 - e_t) p^c_{t-1}), then the N restarted options (weights
+    e_t p'^c_t). `weights` [B, 2N], `params` [2N, B, n_params] (option output heads), `p_c` [B, N]
+    (mixed p^c_t), `end` [B] (e_t, 1 at starts), `option_end` [B, N] (e_{i,t} of continuing options)."""
+
+    weights: Tensor
+    params: Tensor
+    p_c: Tensor
+    end: Tensor
+    option_end: Tensor
+
+
+class Projected(NamedTuple):
+    """First-layer observation terms: controller [..., 1, B, d_mlp], options [..., N, B, d_mlp]."""
+
+    controller: Tensor
+    options: Tensor
+
+
+def _mix(end: Tensor, done: Tensor, not_done: Tensor) -> Tensor:
+    """Eq. 17: e_t * done + (1 - e_t) * not_done, `end` already shaped to broadcast against them."""
+    return torch.lerp(not_done, done, end)
+
+
+class OCNCore(nn.Module):
+    """Shared controller (N = 1 cell over options), N option cells, and the learned initial states."""
+
+    def __init__(
+        self,
+        obs_dim: int,
+        n_tasks: int,
+        n_options: int,
+        hidden_size: int,
+        mlp_hidden_size: int,
+        mlp_depth: int,
+        n_params: int,
+        temperature: float,
+    ) -> None:
+        super().__init__()
+        self.n_options = n_options
+        self.temperature = temperature
+        self.controller = StackedCell(
+            1, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_options, with_end=False
+        )
+        self.options = StackedCell(
+            n_options, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_params
+        )
+        self.controller_init = nn.Parameter(torch.zeros(n_tasks, hidden_size))
+        self.option_init = nn.Parameter(torch.zeros(n_options, hidden_size))
+
+    def initial_state(self, task_index: Tensor) -> OCNState:
+        """State before t = 1: h^c_{tau,0} per row's task; p^c and h^o are unused there (e_1 = 1)."""
+        batch = task_index.shape[0]
+        uniform = torch.full((batch, self.n_options), 1.0 / self.n_options, device=task_index.device)
+        option_h = self.option_init.unsqueeze(1).expand(-1, batch, -1)
+        return OCNState(self.controller_init[task_index], uniform, option_h)
+
+    def project(self, x: Tensor) -> Projected:
+        """Observation parts for x [..., B, obs_dim], computed once per window outside the time loop."""
+        return Projected(self.controller.project(x), self.options.project(x))
+
+    def step(self, state: OCNState, x: Projected, start: Tensor) -> tuple[OCNState, StepOutput]:
+        """One step from projected observations x ([1, B, .], [N, B, .]); `start` [B] forces e_t = 1."""
+        continued = self.options.step(x.options, state.option_h)
+        restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
+        ctrl = self.controller.step(x.controller, state.controller_h.unsqueeze(0))
+        new_p_c = torch.softmax(ctrl.logits[0] / self.temperature, dim=-1)
+        option_end = continued.end.transpose(0, 1)
+        end = torch.where(start, torch.ones_like(new_p_c[:, 0]), (state.p_c * option_end).sum(-1))
+        gate = end.unsqueeze(-1)
+        next_state = OCNState(
+            controller_h=_mix(gate, ctrl.hidden[0], state.controller_h),
+            p_c=_mix(gate, new_p_c, state.p_c),
+            option_h=_mix(gate.unsqueeze(0), restarted.hidden, continued.hidden),
+        )
+        weights = torch.cat([(1.0 - gate) * state.p_c, gate * new_p_c], dim=-1)
+        params = torch.cat([continued.logits, restarted.logits], dim=0)
+        return next_state, StepOutput(weights, params, next_state.p_c, end, option_end)
+
+    def unroll(self, x: Tensor, state: OCNState, start: Tensor) -> tuple[OCNState, StepOutput]:
+        """Run over time-major x [T, B, obs_dim] with `start` [T, B]; outputs are stacked over T."""
+        projected = self.project(x)
+        # unbind, not indexing: indexing's backward would zero-fill the whole window at every step.
+        steps = zip(projected.controller.unbind(0), projected.options.unbind(0), start.unbind(0), strict=True)
+        outputs = []
+        for controller_x, options_x, step_start in steps:
+            state, out = self.step(state, Projected(controller_x, options_x), step_start)
+            outputs.append(out)
+        return state, StepOutput(*(torch.stack(field) for field in zip(*outputs, strict=True)))

@@ -1,0 +1,403 @@
+"""Tests of the OCN policy: cell, recurrence (eq. 8-17), loss, inference state, LeRobot plumbing."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch.nn import functional as F
+
+from lerobot.configs import NormalizationMode, PreTrainedConfig
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.utils.constants import ACTION, OBS_STATE
+from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
+from policies.ocn.benchmark import use_looped_cells
+from policies.ocn.cell import StackedCell
+from policies.ocn.heads import GaussianHead, mixture_log_prob
+from policies.ocn.recurrence import OCNState, Projected
+
+torch.set_num_threads(1)
+
+TASKS = ["make plank", "get gold"]
+STATE_DIM = 6
+N_OPTIONS = 3
+
+
+def make_policy(action_type: str = "discrete", action_dim: int = 1, **overrides) -> OCNPolicy:
+    settings = dict(
+        device="cpu",
+        obs_encoder="identity",
+        action_type=action_type,
+        n_actions=4,
+        n_options=N_OPTIONS,
+        hidden_size=8,
+        mlp_hidden_size=12,
+        window_size=5,
+        tasks=list(TASKS),
+        input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (STATE_DIM,))},
+        output_features={ACTION: PolicyFeature(FeatureType.ACTION, (action_dim,))},
+    )
+    settings.update(overrides)
+    torch.manual_seed(0)
+    return OCNPolicy(OCNConfig(**settings))
+
+
+def make_batch(batch: int = 4, steps: int = 5, action_dim: int = 0, seed: int = 1) -> dict:
+    """Windows that all start an episode; action_dim 0 means discrete indices [B, T, 1]."""
+    gen = torch.Generator().manual_seed(seed)
+    if action_dim:
+        action = torch.randn(batch, steps, action_dim, generator=gen)
+    else:
+        action = torch.randint(0, 4, (batch, steps, 1), generator=gen).float()
+    return {
+        OBS_STATE: torch.randn(batch, steps, STATE_DIM, generator=gen),
+        ACTION: action,
+        f"{ACTION}_is_pad": torch.zeros(batch, steps, dtype=torch.bool),
+        "task": [TASKS[i % 2] for i in range(batch)],
+        "timestamp": torch.zeros(batch),
+    }
+
+
+def force_termination(policy: OCNPolicy, logit: float) -> None:
+    """Set every option's termination bias so that e_{i,t} = sigmoid(logit) (0 or 1 for |logit| huge)."""
+    with torch.no_grad():
+        policy.core.options.w_out[..., -1] = 0.0
+        policy.core.options.b_out[..., -1] = logit
+
+
+# ---- cell ----------------------------------------------------------------------------------------
+
+
+def test_stacked_cell_equals_per_module_evaluation():
+    torch.manual_seed(0)
+    cell = StackedCell(3, in_dim=7, hidden_size=5, mlp_hidden_size=6, mlp_depth=3, n_out=4)
+    x, h = torch.randn(2, 7), torch.randn(3, 2, 5)
+    out = cell(x, h)
+    for i in range(3):
+        weight = torch.cat([cell.w_x[i], cell.w_h[i]]).T
+        act = torch.tanh(F.linear(torch.cat([x, h[i]], -1), weight, cell.b_in[i, 0]))
+        for w, b in zip(cell.w_mlp, cell.b_mlp, strict=True):
+            act = torch.tanh(F.linear(act, w[i].T, b[i, 0]))
+        head = F.linear(act, cell.w_out[i].T, cell.b_out[i, 0])
+        torch.testing.assert_close(out.logits[i], head[:, :4])
+        torch.testing.assert_close(out.hidden[i], torch.tanh(head[:, 4:9]))
+        torch.testing.assert_close(out.end[i], torch.sigmoid(head[:, 9]))
+    assert out.logits.shape == (3, 2, 4) and out.hidden.shape == (3, 2, 5) and out.end.shape == (3, 2)
+
+
+def test_controller_cell_has_no_termination_head():
+    cell = StackedCell(1, in_dim=7, hidden_size=5, mlp_hidden_size=6, mlp_depth=2, n_out=3, with_end=False)
+    out = cell(torch.randn(2, 7), torch.zeros(1, 2, 5))
+    assert out.end is None and cell.w_out.shape == (1, 6, 3 + 5)
+
+
+def test_looped_cells_give_the_same_loss_and_gradients():
+    batch = make_batch()
+    stacked, looped = make_policy(), use_looped_cells(make_policy())
+    loss_s, _ = stacked(batch)
+    loss_l, _ = looped(batch)
+    loss_s.backward()
+    loss_l.backward()
+    torch.testing.assert_close(loss_s, loss_l)
+    torch.testing.assert_close(stacked.core.options.w_h.grad, looped.core.options.w_h.grad)
+
+
+# ---- recurrence, eq. 8-17 --------------------------------------------------------------------------
+
+
+def test_first_step_is_the_controller_choice_from_the_task_state():
+    policy = make_policy()
+    core = policy.core
+    with torch.no_grad():
+        core.controller_init[1] = torch.linspace(-1, 1, 8)
+    x = torch.randn(2, STATE_DIM)
+    task = torch.tensor([1, 0])
+    state, out = core.step(core.initial_state(task), core.project(x), torch.ones(2, dtype=torch.bool))
+    ctrl = core.controller(x, core.controller_init[task].unsqueeze(0))
+    torch.testing.assert_close(out.p_c, torch.softmax(ctrl.logits[0] / policy.config.temperature, -1))
+    torch.testing.assert_close(state.controller_h, ctrl.hidden[0])
+    restarted = core.options(x, core.option_init.unsqueeze(1).expand(-1, 2, -1))
+    torch.testing.assert_close(state.option_h, restarted.hidden)
+    assert torch.equal(out.end, torch.ones(2))
+    assert torch.equal(out.weights[:, :N_OPTIONS], torch.zeros(2, N_OPTIONS))
+
+
+def _previous_state(batch: int = 2) -> OCNState:
+    gen = torch.Generator().manual_seed(3)
+    p_c = torch.softmax(torch.randn(batch, N_OPTIONS, generator=gen), -1)
+    controller_h = torch.randn(batch, 8, generator=gen).tanh()
+    return OCNState(controller_h, p_c, torch.randn(N_OPTIONS, batch, 8, generator=gen))
+
+
+def test_not_done_keeps_controller_and_continues_options():
+    policy = make_policy()
+    force_termination(policy, -1e4)
+    core, prev, x = policy.core, _previous_state(), torch.randn(2, STATE_DIM)
+    state, out = core.step(prev, core.project(x), torch.zeros(2, dtype=torch.bool))
+    assert torch.equal(out.end, torch.zeros(2))
+    assert torch.equal(state.controller_h, prev.controller_h)
+    assert torch.equal(state.p_c, prev.p_c)
+    continued = core.options(x, prev.option_h)
+    torch.testing.assert_close(state.option_h, continued.hidden)
+    torch.testing.assert_close(out.weights, torch.cat([prev.p_c, torch.zeros(2, N_OPTIONS)], -1))
+
+
+def test_done_steps_controller_and_restarts_options():
+    policy = make_policy()
+    force_termination(policy, 1e4)
+    core, prev, x = policy.core, _previous_state(), torch.randn(2, STATE_DIM)
+    state, out = core.step(prev, core.project(x), torch.zeros(2, dtype=torch.bool))
+    assert torch.equal(out.end, torch.ones(2))
+    ctrl = core.controller(x, prev.controller_h.unsqueeze(0))
+    new_p_c = torch.softmax(ctrl.logits[0] / policy.config.temperature, -1)
+    torch.testing.assert_close(state.controller_h, ctrl.hidden[0])
+    torch.testing.assert_close(state.p_c, new_p_c)
+    restarted = core.options(x, core.option_init.unsqueeze(1).expand(-1, 2, -1))
+    torch.testing.assert_close(state.option_h, restarted.hidden)
+    torch.testing.assert_close(out.weights, torch.cat([torch.zeros(2, N_OPTIONS), new_p_c], -1))
+
+
+def test_soft_step_mixes_both_branches_by_eq_17():
+    policy = make_policy()
+    core, prev, x = policy.core, _previous_state(), torch.randn(2, STATE_DIM)
+    state, out = core.step(prev, core.project(x), torch.zeros(2, dtype=torch.bool))
+    continued = core.options(x, prev.option_h)
+    restarted = core.options(x, core.option_init.unsqueeze(1).expand(-1, 2, -1))
+    ctrl = core.controller(x, prev.controller_h.unsqueeze(0))
+    new_p_c = torch.softmax(ctrl.logits[0] / policy.config.temperature, -1)
+    e = (prev.p_c * continued.end.T).sum(-1)
+    torch.testing.assert_close(out.end, e)
+    g = e[:, None]
+    torch.testing.assert_close(state.controller_h, g * ctrl.hidden[0] + (1 - g) * prev.controller_h)
+    torch.testing.assert_close(state.p_c, g * new_p_c + (1 - g) * prev.p_c)
+    torch.testing.assert_close(state.option_h, g[None] * restarted.hidden + (1 - g[None]) * continued.hidden)
+    action = torch.tensor([[2.0], [0.0]])
+    not_done = torch.einsum("bn,nba->ba", prev.p_c, torch.softmax(continued.logits, -1))
+    done = torch.einsum("bn,nba->ba", new_p_c, torch.softmax(restarted.logits, -1))
+    p_a = (e[:, None] * done + (1 - e[:, None]) * not_done).gather(1, action.long()).squeeze(1)
+    got = mixture_log_prob(out.weights, policy.head.log_prob(out.params, action))
+    torch.testing.assert_close(got, p_a.log())
+
+
+# ---- loss, masks, windows ------------------------------------------------------------------------
+
+
+def test_forward_shapes_and_padding_mask():
+    policy = make_policy()
+    batch = make_batch()
+    batch[f"{ACTION}_is_pad"][0, 3:] = True
+    loss, stats = policy(batch)
+    assert loss.shape == () and stats["frames_used"] == 4 * 5 - 2 and stats["windows_used"] == 4
+    per_window, _ = policy(batch, reduction="none")
+    assert per_window.shape == (4,)
+    changed = dict(batch, **{ACTION: batch[ACTION].clone()})
+    changed[ACTION][0, 4] = (changed[ACTION][0, 4] + 1) % 4
+    torch.testing.assert_close(policy(changed)[0], loss)
+    changed[ACTION][0, 1] = (changed[ACTION][0, 1] + 1) % 4
+    assert not torch.allclose(policy(changed)[0], loss)
+    parsed = policy.parse(batch)
+    assert parsed["p_c"].shape == (4, 5, N_OPTIONS) and parsed["option"].shape == (4, 5)
+    assert parsed["end"].shape == (4, 5) and torch.equal(parsed["end"][:, 0], torch.ones(4))
+    assert parsed["mask"][0].tolist() == [True, True, True, False, False]
+    torch.testing.assert_close(-(parsed["action_log_prob"] * parsed["mask"]).sum() / 18, loss)
+
+
+def test_actions_without_a_feature_axis_as_lerobot_loads_them():
+    policy = make_policy()
+    batch = make_batch(batch=1)
+    flat = dict(batch, **{ACTION: batch[ACTION][..., 0].long()})
+    torch.testing.assert_close(policy(flat)[0], policy(batch)[0])
+
+
+def test_window_start_modes():
+    batch = make_batch()
+    batch["timestamp"] = torch.tensor([0.0, 0.1, 0.0, 0.25])
+    strict, anywhere = make_policy(), make_policy(window_start="any")
+    loss, stats = strict(batch)
+    assert stats["windows_used"] == 2
+    per_window, _ = strict(batch, reduction="none")
+    assert per_window[1] == 0 and per_window[3] == 0 and per_window[0] > 0
+    sub = {k: (v[[0, 2]] if torch.is_tensor(v) else [v[0], v[2]]) for k, v in batch.items()}
+    torch.testing.assert_close(strict(sub)[0], loss)
+    assert anywhere(batch)[1]["windows_used"] == 4
+    without_time = {k: v for k, v in batch.items() if k != "timestamp"}
+    with pytest.raises(ValueError, match="timestamp"):
+        strict(without_time)
+
+
+def test_batch_without_episode_starts_gives_zero_loss_that_backpropagates():
+    policy = make_policy()
+    batch = make_batch()
+    batch["timestamp"] = torch.full((4,), 0.5)
+    loss, stats = policy(batch)
+    loss.backward()
+    assert loss.item() == 0.0 and stats["windows_used"] == 0
+
+
+def test_gradients_reach_every_part():
+    policy = make_policy(temperature=1.0)
+    loss, _ = policy(make_batch(batch=6, steps=5))
+    loss.backward()
+    core = policy.core
+    for name, param in core.controller.named_parameters():
+        assert param.grad is not None and param.grad.abs().sum() > 0, name
+    for name, param in core.options.named_parameters():
+        per_option = param.grad.flatten(1).abs().sum(1)
+        assert (per_option > 0).all(), name
+    termination = core.options.w_out.grad[..., -1].abs().sum(1)
+    assert (termination > 0).all()
+    assert (core.controller_init.grad.abs().sum(1) > 0).all()
+    assert (core.option_init.grad.abs().sum(1) > 0).all()
+
+
+def test_unknown_task_is_a_value_error_listing_the_tasks():
+    policy = make_policy()
+    batch = make_batch()
+    batch["task"] = ["make plank", "fly to the moon", "get gold", "get gold"]
+    with pytest.raises(ValueError, match="fly to the moon") as error:
+        policy(batch)
+    assert all(task in str(error.value) for task in TASKS)
+
+
+# ---- continuous head -------------------------------------------------------------------------------
+
+
+def test_gaussian_log_prob_by_hand():
+    head = GaussianHead(action_dim=2, log_std_min=-5, log_std_max=2)
+    params = torch.tensor([[[0.5, -1.0, math.log(2.0), 0.0]]])
+    action = torch.tensor([[1.5, -1.0]])
+    expected = (-0.5 * 0.25 - math.log(2.0) - 0.5 * math.log(2 * math.pi)) + (-0.5 * math.log(2 * math.pi))
+    assert head.log_prob(params, action).item() == pytest.approx(expected, rel=1e-6)
+
+
+def test_continuous_nll_of_first_step_is_the_restarted_options_gaussian_mixture():
+    policy = make_policy("continuous", action_dim=2, n_options=1)
+    batch = make_batch(batch=1, steps=1, action_dim=2)
+    loss, _ = policy(batch)
+    core, x = policy.core, batch[OBS_STATE][:, 0]
+    out = core.options(x, core.option_init.unsqueeze(1))
+    mean, log_std = out.logits[0, 0].chunk(2)
+    normal = torch.distributions.Normal(mean, log_std.exp())
+    torch.testing.assert_close(loss, -normal.log_prob(batch[ACTION][0, 0]).sum())
+
+
+# ---- inference -------------------------------------------------------------------------------------
+
+
+def test_select_action_keeps_state_and_reset_clears_it():
+    policy = make_policy(inference_mode="greedy")
+    episode = make_batch(batch=2, steps=4)
+    actions = []
+    for t in range(4):
+        obs = {OBS_STATE: episode[OBS_STATE][:, t], "task": episode["task"]}
+        actions.append(policy.select_action(obs))
+        assert policy.last_step.p_c.shape == (2, N_OPTIONS) and policy.last_step.option.shape == (2,)
+        assert torch.equal(policy.last_step.end == 1, torch.full((2,), t == 0))
+    parsed = policy.parse(episode)
+    torch.testing.assert_close(policy.last_step.p_c, parsed["p_c"][:, -1])
+    policy.reset()
+    first = policy.select_action({OBS_STATE: episode[OBS_STATE][:, 0], "task": episode["task"]})
+    assert torch.equal(first, actions[0]) and torch.equal(policy.last_step.end, torch.ones(2))
+    assert actions[0].shape == (2, 1) and policy.predict_action_chunk(
+        {OBS_STATE: episode[OBS_STATE][:, 1], "task": episode["task"]}
+    ).shape == (2, 1, 1)
+
+
+def test_continuous_select_action_shape():
+    policy = make_policy("continuous", action_dim=3)
+    action = policy.select_action({OBS_STATE: torch.randn(5, STATE_DIM), "task": "get gold"})
+    assert action.shape == (5, 3) and torch.isfinite(action).all()
+
+
+# ---- LeRobot plumbing ------------------------------------------------------------------------------
+
+
+def test_config_defaults_and_registration():
+    import lerobot_policy_ocn  # noqa: F401
+
+    assert PreTrainedConfig.get_choice_class("ocn") is OCNConfig
+    craft = OCNConfig(device="cpu")
+    identity = NormalizationMode.IDENTITY
+    assert craft.normalization_mapping == {"STATE": identity, "ACTION": identity}
+    dial = OCNConfig(device="cpu", obs_encoder="identity", action_type="continuous")
+    assert dial.normalization_mapping["ACTION"] is NormalizationMode.MEAN_STD
+    assert craft.observation_delta_indices == craft.action_delta_indices == list(range(64))
+    assert craft.get_optimizer_preset().lr == 1e-3
+    with pytest.raises(ValueError, match="window_start"):
+        OCNConfig(device="cpu", window_start="sometimes")
+
+
+def test_save_and_load_round_trip(tmp_path):
+    policy = make_policy(window_start="any")
+    with torch.no_grad():
+        policy.core.controller_init.normal_()
+    batch = make_batch()
+    policy.save_pretrained(tmp_path)
+    loaded = OCNPolicy.from_pretrained(tmp_path)
+    assert loaded.config.tasks == TASKS and loaded.config.window_start == "any"
+    torch.testing.assert_close(loaded(batch)[0], policy(batch)[0], rtol=0, atol=0)
+    torch.testing.assert_close(loaded.parse(batch)["p_c"], policy.parse(batch)["p_c"], rtol=0, atol=0)
+
+
+def test_task_strings_survive_the_preprocessor():
+    policy = make_policy()
+    stats = {OBS_STATE: {"mean": torch.zeros(STATE_DIM), "std": torch.ones(STATE_DIM)}}
+    pre, post = make_ocn_pre_post_processors(policy.config, stats)
+    processed = pre(make_batch())
+    assert processed["task"] == [TASKS[i % 2] for i in range(4)]
+    assert torch.equal(processed["timestamp"], torch.zeros(4))
+    loss, _ = policy(processed)
+    assert torch.isfinite(loss)
+    action = post(policy.select_action(pre({OBS_STATE: torch.randn(STATE_DIM), "task": "get gold"})))
+    assert action.shape == (1, 1)
+
+
+def test_policy_from_a_lerobot_dataset_takes_its_tasks(tmp_path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.policies.factory import make_policy as lerobot_make_policy
+
+    features = {
+        OBS_STATE: {"dtype": "float32", "shape": (STATE_DIM,), "names": None},
+        ACTION: {"dtype": "int64", "shape": (1,), "names": None},
+    }
+    root = tmp_path / "ds"
+    dataset = LeRobotDataset.create("local/ocn_test", fps=10, features=features, root=root, use_videos=False)
+    for episode, task in enumerate(["get gold", "make plank"]):
+        for t in range(3 + episode):
+            frame = {OBS_STATE: np.random.randn(STATE_DIM).astype(np.float32), ACTION: np.array([t % 4])}
+            dataset.add_frame({**frame, "task": task})
+        dataset.save_episode()
+    dataset.finalize()
+    config = OCNConfig(
+        device="cpu", obs_encoder="identity", n_actions=4, hidden_size=8, mlp_hidden_size=8, window_size=4
+    )
+    policy = lerobot_make_policy(config, ds_meta=dataset.meta)
+    assert policy.config.tasks == ["get gold", "make plank"]
+    offsets = [i / 10 for i in config.observation_delta_indices]
+    delta_timestamps = {OBS_STATE: offsets, ACTION: offsets}
+    windows = LeRobotDataset("local/ocn_test", root=root, delta_timestamps=delta_timestamps)
+    loader = torch.utils.data.DataLoader(windows, batch_size=len(windows))
+    pre, _ = make_ocn_pre_post_processors(policy.config, dataset.meta.stats)
+    loss, stats = policy(pre(next(iter(loader))))
+    assert stats["windows_used"] == 2 and stats["frames_used"] == 3 + 4 and torch.isfinite(loss)
+
+
+def test_craft_policy_acts_in_the_craft_env():
+    craft = pytest.importorskip("envs.craft.env")
+    env = craft.CraftEnv(task="AC")
+    obs, _ = env.reset(seed=0)
+    config = OCNConfig(
+        device="cpu",
+        hidden_size=8,
+        mlp_hidden_size=8,
+        tasks=[env.task_description],
+        input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))},
+        output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))},
+    )
+    policy = OCNPolicy(config)
+    assert policy.encoder.out_dim == 1075
+    for _ in range(3):
+        observation = {OBS_STATE: torch.from_numpy(obs)[None], "task": [env.task_description]}
+        action = policy.select_action(observation)
+        assert action.shape == (1, 1) and 0 <= int(action) < config.n_actions
+        obs, *_ = env.step(int(action))
