@@ -14,7 +14,7 @@ from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell
 from policies.ocn.heads import GaussianHead, mixture_log_prob
-from policies.ocn.recurrence import OCNState, Projected
+from policies.ocn.recurrence import OCNState
 
 torch.set_num_threads(1)
 
