@@ -16,9 +16,10 @@ from torch import Tensor
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 
+from envs.craft.observation import OMPN_DIM
+
 from .cell import CellOutput, StackedCell
 from .configuration_ocn import OCNConfig
-from .encoders import OMPN_FEATURE_DIM
 from .modeling_ocn import OCNPolicy
 
 BENCH_TASKS = ["task 0", "task 1", "task 2"]
@@ -60,7 +61,7 @@ def use_looped_cells(policy: OCNPolicy) -> OCNPolicy:
 def make_bench_policy(
     n_options: int = 3,
     hidden_size: int = 128,
-    obs_dim: int = OMPN_FEATURE_DIM,
+    obs_dim: int = OMPN_DIM,
     n_actions: int = 5,
     window: int = 32,
 ) -> OCNPolicy:

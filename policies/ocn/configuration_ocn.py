@@ -7,11 +7,12 @@ from lerobot.configs.types import FeatureType
 from lerobot.optim import AdamConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
+from envs.craft.observation import OBS_DIM as CRAFT_STATE_DIM
+
 OBS_ENCODERS = ("craft", "identity")
 ACTION_TYPES = ("discrete", "continuous")
 WINDOW_STARTS = ("episode_start_only", "any")
 INFERENCE_MODES = ("sample", "greedy")
-CRAFT_STATE_DIM = 81
 
 
 def _check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:

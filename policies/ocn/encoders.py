@@ -6,27 +6,19 @@ one-hot observation inside the policy: far cheaper to record and load than the o
 
 from torch import Tensor, nn
 
-from .configuration_ocn import OCNConfig
+from envs.craft.observation import OMPN_DIM, ompn_features
 
-OMPN_FEATURE_DIM = 1075
+from .configuration_ocn import OCNConfig
 
 
 class CraftEncoder(nn.Module):
-    """Compact Craft state [..., 81] -> OMPN features [..., 1075] via `envs.craft.observation`.
+    """Compact Craft state [..., 81] -> OMPN features [..., 1075] via `envs.craft.observation`."""
 
-    The import is deferred to the first call so that non-Craft policies never need the Craft package.
-    """
-
-    out_dim = OMPN_FEATURE_DIM
+    out_dim = OMPN_DIM
 
     def forward(self, state: Tensor) -> Tensor:
-        from envs.craft.observation import ompn_features
-
         ids = state.round().long() if state.is_floating_point() else state.long()
-        features = ompn_features(ids)
-        if features.shape[-1] != self.out_dim:
-            raise ValueError(f"ompn_features returned width {features.shape[-1]}, expected {self.out_dim}.")
-        return features.float()
+        return ompn_features(ids).float()
 
 
 class IdentityEncoder(nn.Module):
