@@ -106,6 +106,16 @@ def bench_record(episodes_per_task: int, mcap: bool) -> dict:
     }
 
 
+def bench_import(repeats: int = 3) -> float:
+    """Seconds a fresh interpreter takes to import `record_demos` (LeRobot and torch with it); best of `repeats`."""
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-c", "import ocn_data.record_demos"], check=True, capture_output=True)
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
 def run_env_bench(args: argparse.Namespace) -> None:
     result = {
         "benchmark": "ocn-bench env",
@@ -114,6 +124,7 @@ def run_env_bench(args: argparse.Namespace) -> None:
         "env_steps": bench_env_steps(args.steps),
         "record_demos": bench_record(args.episodes_per_task, mcap=False),
         "record_demos_with_mcap": bench_record(args.episodes_per_task, mcap=True),
+        "record_demos_import_s": bench_import(),
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -124,11 +135,11 @@ def run_env_bench(args: argparse.Namespace) -> None:
 
 def _markdown(r: dict) -> str:
     m, s, rec, mc = r["machine"], r["env_steps"], r["record_demos"], r["record_demos_with_mcap"]
+    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
     return (
         "# Craft env and recording throughput\n\n"
         f"Command: `ocn-bench env`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}.\n\n"
-        + (f"Conditions: {r['note']}\n\n" if r["note"] else "")
-        +
+        f"{conditions}"
         "| what | rate |\n|---|---|\n"
         f"| one `CraftEnv` (gymnasium API), random actions | {s['single_env_steps_per_s']:,.0f} steps/s |\n"
         f"| 64 envs batched, `CraftBatch.step` | {s['batched_64_core_steps_per_s']:,.0f} env steps/s |\n"
@@ -138,7 +149,9 @@ def _markdown(r: dict) -> str:
         f"{rec['frames_per_s']:,.0f} frames/s ({rec['wall_s']:.1f} s) |\n"
         f"| the same with `--mcap` | {mc['frames_per_s']:,.0f} frames/s ({mc['wall_s']:.1f} s) |\n\n"
         "Recording times are whole subprocesses (interpreter start and imports included) writing a "
-        "LeRobot v3.0 dataset with per-episode statistics and the dataset card.\n"
+        "LeRobot v3.0 dataset with per-episode statistics and the dataset card; of each, "
+        f"{r['record_demos_import_s']:.1f} s is a fresh interpreter importing `record_demos` "
+        "(LeRobot and torch with it).\n"
     )
 
 
