@@ -54,7 +54,6 @@ def make_batch(batch: int = 4, steps: int = 5, action_dim: int = 0, seed: int = 
         ACTION: action,
         f"{ACTION}_is_pad": torch.zeros(batch, steps, dtype=torch.bool),
         "task": [TASKS[i % 2] for i in range(batch)],
-        "timestamp": torch.zeros(batch),
     }
 
 
@@ -187,7 +186,7 @@ def test_forward_shapes_and_padding_mask():
     batch = make_batch()
     batch[f"{ACTION}_is_pad"][0, 3:] = True
     loss, stats = policy(batch)
-    assert loss.shape == () and stats["frames_used"] == 4 * 5 - 2 and stats["windows_used"] == 4
+    assert loss.shape == () and stats["frames_used"] == 4 * 5 - 2
     per_window, _ = policy(batch, reduction="none")
     assert per_window.shape == (4,)
     changed = dict(batch, **{ACTION: batch[ACTION].clone()})
@@ -199,7 +198,8 @@ def test_forward_shapes_and_padding_mask():
     assert parsed["p_c"].shape == (4, 5, N_OPTIONS) and parsed["option"].shape == (4, 5)
     assert parsed["end"].shape == (4, 5) and torch.equal(parsed["end"][:, 0], torch.ones(4))
     assert parsed["mask"][0].tolist() == [True, True, True, False, False]
-    torch.testing.assert_close(-(parsed["action_log_prob"] * parsed["mask"]).sum() / 18, loss)
+    nll = -(parsed["action_log_prob"] * parsed["mask"]).sum(1) / parsed["mask"].sum(1)
+    torch.testing.assert_close(nll.mean(), loss)
 
 
 def test_actions_without_a_feature_axis_as_lerobot_loads_them():
@@ -209,29 +209,54 @@ def test_actions_without_a_feature_axis_as_lerobot_loads_them():
     torch.testing.assert_close(policy(flat)[0], policy(batch)[0])
 
 
-def test_window_start_modes():
-    batch = make_batch()
-    batch["timestamp"] = torch.tensor([0.0, 0.1, 0.0, 0.25])
-    strict, anywhere = make_policy(), make_policy(window_start="any")
-    loss, stats = strict(batch)
-    assert stats["windows_used"] == 2
-    per_window, _ = strict(batch, reduction="none")
-    assert per_window[1] == 0 and per_window[3] == 0 and per_window[0] > 0
-    sub = {k: (v[[0, 2]] if torch.is_tensor(v) else [v[0], v[2]]) for k, v in batch.items()}
-    torch.testing.assert_close(strict(sub)[0], loss)
-    assert anywhere(batch)[1]["windows_used"] == 4
-    without_time = {k: v for k, v in batch.items() if k != "timestamp"}
-    with pytest.raises(ValueError, match="timestamp"):
-        strict(without_time)
+def pad_around(batch: dict, lead: list[int], width: int) -> dict:
+    """Place each row's frames at offset lead[i] of a window `width` long, padding marked as LeRobot does."""
+    out = {"task": batch["task"]}
+    for key in (OBS_STATE, ACTION):
+        rows = []
+        for i, offset in enumerate(lead):
+            frames = batch[key][i]
+            before = frames[:1].expand(offset, *frames.shape[1:])
+            after = frames[-1:].expand(width - offset - frames.shape[0], *frames.shape[1:])
+            rows.append(torch.cat([before, frames, after]))
+        out[key] = torch.stack(rows)
+    pad = torch.ones(len(lead), width, dtype=torch.bool)
+    for i, offset in enumerate(lead):
+        pad[i, offset : offset + batch[ACTION].shape[1]] = False
+    out[f"{ACTION}_is_pad"] = out[f"{OBS_STATE}_is_pad"] = pad
+    return out
 
 
-def test_batch_without_episode_starts_gives_zero_loss_that_backpropagates():
-    policy = make_policy()
+def test_episode_windows_train_on_whole_episodes_from_their_start():
+    episodes = make_batch(batch=4, steps=5)
+    centred = pad_around(episodes, lead=[4, 2, 0, 3], width=2 * 5 - 1)
+    policy = make_policy(window_size=5)
+    assert policy.config.observation_delta_indices == list(range(-4, 5))
+    reference = make_policy(window_size=5, window_start="any")
+    reference.load_state_dict(policy.state_dict())
+    per_window, stats = policy(centred, reduction="none")
+    torch.testing.assert_close(per_window, reference(episodes, reduction="none")[0])
+    assert stats["frames_used"] == 4 * 5
+
+
+def test_any_windows_start_where_they_are_sampled():
+    policy = make_policy(window_size=5, window_start="any")
+    assert policy.config.observation_delta_indices == list(range(5))
     batch = make_batch()
-    batch["timestamp"] = torch.full((4,), 0.5)
-    loss, stats = policy(batch)
-    loss.backward()
-    assert loss.item() == 0.0 and stats["windows_used"] == 0
+    shifted = {k: (v[:, 2:] if torch.is_tensor(v) else v) for k, v in batch.items()}
+    loss, stats = policy(shifted)
+    assert stats["frames_used"] == 4 * 3
+    assert not torch.allclose(loss, policy(batch)[0])
+
+
+def test_loss_is_the_mean_over_windows_of_each_windows_frame_mean():
+    policy = make_policy(window_start="any")
+    batch = make_batch()
+    batch[f"{ACTION}_is_pad"][1, 2:] = True
+    per_window, _ = policy(batch, reduction="none")
+    torch.testing.assert_close(policy(batch)[0], per_window.mean())
+    short = {k: (v[1:2, :2] if torch.is_tensor(v) else [v[1]]) for k, v in batch.items()}
+    torch.testing.assert_close(per_window[1], policy(short)[0])
 
 
 def test_gradients_reach_every_part():
@@ -321,7 +346,7 @@ def test_config_defaults_and_registration():
     assert craft.normalization_mapping == {"STATE": identity, "ACTION": identity}
     dial = OCNConfig(device="cpu", obs_encoder="identity", action_type="continuous")
     assert dial.normalization_mapping["ACTION"] is NormalizationMode.MEAN_STD
-    assert craft.observation_delta_indices == craft.action_delta_indices == list(range(64))
+    assert craft.observation_delta_indices == craft.action_delta_indices == list(range(-31, 32))
     assert craft.get_optimizer_preset().lr == 1e-3
     with pytest.raises(ValueError, match="window_start"):
         OCNConfig(device="cpu", window_start="sometimes")
@@ -345,7 +370,6 @@ def test_task_strings_survive_the_preprocessor():
     pre, post = make_ocn_pre_post_processors(policy.config, stats)
     processed = pre(make_batch())
     assert processed["task"] == [TASKS[i % 2] for i in range(4)]
-    assert torch.equal(processed["timestamp"], torch.zeros(4))
     loss, _ = policy(processed)
     assert torch.isfinite(loss)
     action = post(policy.select_action(pre({OBS_STATE: torch.randn(STATE_DIM), "task": "get gold"})))
@@ -379,7 +403,10 @@ def test_policy_from_a_lerobot_dataset_takes_its_tasks(tmp_path):
     loader = torch.utils.data.DataLoader(windows, batch_size=len(windows))
     pre, _ = make_ocn_pre_post_processors(policy.config, dataset.meta.stats)
     loss, stats = policy(pre(next(iter(loader))))
-    assert stats["windows_used"] == 2 and stats["frames_used"] == 3 + 4 and torch.isfinite(loss)
+    assert stats["frames_used"] == 3 * 3 + 4 * 4 and torch.isfinite(loss)  # every window: its whole episode
+    short = OCNConfig(device="cpu", obs_encoder="identity", n_actions=4, hidden_size=8, window_size=3)
+    with pytest.raises(ValueError, match="episodes of up to 4 frames"):
+        lerobot_make_policy(short, ds_meta=dataset.meta)
 
 
 def test_craft_policy_acts_in_the_craft_env():
@@ -401,3 +428,16 @@ def test_craft_policy_acts_in_the_craft_env():
         action = policy.select_action(observation)
         assert action.shape == (1, 1) and 0 <= int(action) < config.n_actions
         obs, *_ = env.step(int(action))
+
+
+
+def test_optimizer_groups_slow_the_controller_only():
+    policy = make_policy(controller_lr_scale=0.1)
+    rest, controller = policy.get_optim_params()
+    assert controller["lr"] == pytest.approx(1e-4) and "lr" not in rest
+    ids = {id(p) for p in controller["params"]}
+    assert id(policy.core.controller_init) in ids and id(policy.core.controller.w_x) in ids
+    assert id(policy.core.options.w_x) not in ids and id(policy.core.option_init) not in ids
+    assert len(ids) + len(rest["params"]) == len(list(policy.parameters()))
+    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
+    assert [group["lr"] for group in optimizer.param_groups] == pytest.approx([1e-3, 1e-4])

@@ -2,8 +2,12 @@
 
 `ocn-bench env` measures Craft env steps per second (one gymnasium env; 64 envs batched through
 `CraftBatch` and through the gymnasium vector env) and `record_demos` frames per second end to end
-(a subprocess writing a real LeRobot dataset, with and without the MCAP log). Results carry the
-machine they ran on.
+(a subprocess writing a real LeRobot dataset, with and without the MCAP log).
+
+`ocn-bench train` measures OCN training: real (unpadded) frames per second through a real
+`lerobot-train` run on the S1 data, the same model's update alone, LeRobot's windowed
+`__getitem__`, the stacked option cells against a per-option Python loop, and `select_action`
+latency. Results carry the machine they ran on.
 """
 
 from __future__ import annotations
@@ -19,6 +23,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from tools import console_script
 
 RESULTS = Path(__file__).resolve().parent.parent / "results"
 
@@ -126,11 +132,15 @@ def run_env_bench(args: argparse.Namespace) -> None:
         "record_demos_with_mcap": bench_record(args.episodes_per_task, mcap=True),
         "record_demos_import_s": bench_import(),
     }
-    out = Path(args.out)
+    _write(result, Path(args.out), _markdown(result))
+
+
+def _write(result: dict, out: Path, markdown: str) -> None:
+    """The JSON and its Markdown twin, and the Markdown on stdout."""
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
-    out.with_suffix(".md").write_text(_markdown(result))
-    print(_markdown(result))
+    out.with_suffix(".md").write_text(markdown)
+    print(markdown)
 
 
 def _markdown(r: dict) -> str:
@@ -155,6 +165,145 @@ def _markdown(r: dict) -> str:
     )
 
 
+def _log_rates(log: str) -> list[dict[str, float]]:
+    """`lerobot-train`'s periodic lines: per-step update and data-wait seconds and real frames."""
+    rows = []
+    for line in log.splitlines():
+        if " step:" not in line or "frames_used:" not in line:
+            continue
+        fields = dict(part.split(":", 1) for part in line.split() if ":" in part and not part.startswith("20"))
+        rows.append({k: float(fields[k]) for k in ("step", "updt_s", "data_s", "frames_used") if k in fields})
+    return rows
+
+
+def bench_lerobot_train(root: Path, steps: int, batch_size: int, workers: int, window: int) -> dict:
+    """A real `lerobot-train --policy.type=ocn` run on `root`; rates from its own step timings,
+    skipping the first logged interval (worker start-up)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        command = [
+            console_script("lerobot-train"), "--policy.type=ocn", "--dataset.repo_id=local/craft_s1",
+            f"--dataset.root={root}", "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false",
+            "--env_eval_freq=0", f"--steps={steps}", f"--batch_size={batch_size}", f"--num_workers={workers}",
+            "--log_freq=25", f"--save_freq={steps}", f"--policy.window_size={window}", f"--output_dir={tmp}/run",
+        ]
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+        done = subprocess.run(command, check=True, capture_output=True, text=True, env=env)
+    rows = _log_rates(done.stdout + done.stderr)[1:]
+    if not rows:
+        raise RuntimeError("lerobot-train logged no step timings")
+    step_s = float(np.mean([r["updt_s"] + r["data_s"] for r in rows]))
+    frames = float(np.mean([r["frames_used"] for r in rows]))
+    return {
+        "steps": steps,
+        "batch_size": batch_size,
+        "num_workers": workers,
+        "window_size": window,
+        "step_s": step_s,
+        "update_s": float(np.mean([r["updt_s"] for r in rows])),
+        "data_wait_s": float(np.mean([r["data_s"] for r in rows])),
+        "real_frames_per_step": frames,
+        "real_frames_per_s": frames / step_s,
+    }
+
+
+def bench_getitem(root: Path, window: int, items: int = 300) -> float:
+    """Seconds per windowed `LeRobotDataset.__getitem__` with OCN's episode windows."""
+    from lerobot.datasets import LeRobotDataset
+
+    offsets = [i / 10 for i in range(1 - window, window)]
+    ds = LeRobotDataset("local/craft_s1", root=root, delta_timestamps={"observation.state": offsets, "action": offsets})
+    picks = np.random.default_rng(0).integers(0, len(ds), items)
+    ds[0]
+    start = time.perf_counter()
+    for i in picks:
+        ds[int(i)]
+    return (time.perf_counter() - start) / items
+
+
+def bench_update(root: Path, batch_size: int, window: int, threads: int) -> dict:
+    """The model's forward + backward on real S1 episodes, without LeRobot's data loading."""
+    from ocn_data.episodes_table import load_episodes
+    from policies.ocn import OCNConfig, OCNPolicy
+    from policies.ocn.benchmark import torch_threads, train_frames_per_second
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    import torch
+
+    episodes = load_episodes(root, range(batch_size))
+    pad = window - episodes.state.shape[1]
+    state = np.pad(episodes.state, ((0, 0), (0, pad), (0, 0)))
+    action = np.pad(episodes.action, ((0, 0), (0, pad), (0, 0)))
+    config = OCNConfig(
+        device="cpu", window_size=window, window_start="any", tasks=sorted(set(episodes.tasks)),
+        input_features={"observation.state": PolicyFeature(FeatureType.STATE, (state.shape[-1],))},
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (1,))},
+    )
+    batch = {
+        "observation.state": torch.from_numpy(state).float(),
+        "action": torch.from_numpy(action).float(),
+        "action_is_pad": torch.from_numpy(np.pad(~episodes.mask, ((0, 0), (0, pad)), constant_values=True)),
+        "task": episodes.tasks,
+    }
+    with torch_threads(threads):
+        padded_fps = train_frames_per_second(OCNPolicy(config), batch)
+    real = float(episodes.lengths.sum()) / (batch_size * window)
+    return {"threads": threads, "padded_frames_per_s": padded_fps, "real_frames_per_s": padded_fps * real}
+
+
+def run_train_bench(args: argparse.Namespace) -> None:
+    from policies.ocn.benchmark import compare_stacked_vs_loop, make_bench_policy, select_action_latency
+
+    root = Path(args.root)
+    if not (root / "meta" / "info.json").exists():
+        subprocess.run(
+            [console_script("record_demos"), "--env", "craft", "--tasks", "AC,CD,DA",
+             "--episodes-per-task", "6000", "--root", str(root), "--repo-id", "local/craft_s1", "--seed", "0"],
+            check=True, capture_output=True,
+        )
+    craft_policy = make_bench_policy()
+    result = {
+        "benchmark": "ocn-bench train",
+        "machine": machine(),
+        "note": args.note,
+        "lerobot_train": bench_lerobot_train(root, args.steps, args.batch_size, args.workers, args.window),
+        "getitem_s_per_window": bench_getitem(root, args.window),
+        "update_only": [bench_update(root, args.batch_size, args.window, t) for t in (1, 2)],
+        "stacked_vs_loop": compare_stacked_vs_loop(batch_size=512, window=32, threads=2),
+        "select_action_s": {
+            "batch_1": select_action_latency(craft_policy, batch_size=1),
+            "batch_64": select_action_latency(craft_policy, batch_size=64),
+        },
+    }
+    _write(result, Path(args.out), _train_markdown(result))
+
+
+def _train_markdown(r: dict) -> str:
+    m, t, loop, sa = r["machine"], r["lerobot_train"], r["stacked_vs_loop"], r["select_action_s"]
+    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    updates = "".join(
+        f"| the same update alone on real S1 episodes, {u['threads']} thread(s) | "
+        f"{u['real_frames_per_s']:,.0f} real frames/s ({u['padded_frames_per_s']:,.0f} with padding) |\n"
+        for u in r["update_only"]
+    )
+    return (
+        "# OCN training and inference speed\n\n"
+        f"Command: `ocn-bench train`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}.\n\n"
+        f"{conditions}"
+        "| what | rate |\n|---|---|\n"
+        f"| `lerobot-train --policy.type=ocn` on S1, batch {t['batch_size']}, {t['num_workers']} workers, "
+        f"window {t['window_size']} | {t['real_frames_per_s']:,.0f} real frames/s "
+        f"({t['step_s']:.2f} s/step: update {t['update_s']:.2f} s, waiting for data {t['data_wait_s']:.2f} s) |\n"
+        f"{updates}"
+        f"| LeRobot's windowed `__getitem__` (one episode window, {2 * t['window_size'] - 1} frames) | "
+        f"{r['getitem_s_per_window'] * 1e3:.1f} ms per window |\n"
+        f"| stacked options, forward + backward [512 x 32], 2 threads | {loop['stacked_frames_per_s']:,.0f} frames/s |\n"
+        f"| per-option Python loop, same weights and batch | {loop['loop_frames_per_s']:,.0f} frames/s "
+        f"(stacked is {loop['speedup']:.2f}x) |\n"
+        f"| `select_action`, 1 env | {sa['batch_1'] * 1e3:.2f} ms per step |\n"
+        f"| `select_action`, 64 envs | {sa['batch_64'] * 1e3:.2f} ms per step |\n"
+    )
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="ocn-bench", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -164,6 +313,15 @@ def main(argv: list[str] | None = None) -> None:
     env.add_argument("--out", default=str(RESULTS / "bench_env.json"))
     env.add_argument("--note", default="", help="conditions of the run, stored with the results")
     env.set_defaults(func=run_env_bench)
+    train = sub.add_parser("train", help="OCN training throughput, stacked vs looped options, select_action latency")
+    train.add_argument("--root", default="outputs/bench/craft_s1", help="S1 dataset (recorded there if missing)")
+    train.add_argument("--steps", type=int, default=150, help="lerobot-train steps")
+    train.add_argument("--batch-size", type=int, default=128)
+    train.add_argument("--workers", type=int, default=2, help="lerobot-train --num_workers")
+    train.add_argument("--window", type=int, default=24, help="--policy.window_size")
+    train.add_argument("--out", default=str(RESULTS / "bench_train.json"))
+    train.add_argument("--note", default="", help="conditions of the run, stored with the results")
+    train.set_defaults(func=run_train_bench)
     args = parser.parse_args(argv)
     args.func(args)
 

@@ -1,8 +1,10 @@
 """`ocn-quickstart`: the small end-to-end job of the README.
 
-Records a little Craft data with the expert (AC, CD, DA), reads it back with LeRobot, prints what
-it holds and writes a rerun viewer file of one episode with LeRobot's own dataset viewer. Training
-and evaluating OCN join this job once the policy lands (see the README's roadmap).
+Records a little Craft data with the expert (AC, CD, DA), reads it back with LeRobot, trains OCN
+briefly with `lerobot-train --policy.type=ocn`, scores it with `ocn-eval` (parsing metrics, option x
+subtask table, free-run success) and writes a rerun viewer file of one episode with LeRobot's own
+dataset viewer. A brief run shows the loop working, not the paper's figures: those come from
+`ocn-reproduce imitation-s1`.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tools import console_script
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
@@ -26,12 +30,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="scratch directory, replaced on every run")
     parser.add_argument("--episodes-per-task", type=int, default=50)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--train-steps", type=int, default=200, help="lerobot-train steps")
+    parser.add_argument("--batch-size", type=int, default=32, help="lerobot-train windows per step")
     args = parser.parse_args(argv)
 
     shutil.rmtree(args.workdir, ignore_errors=True)
     root, mcap, viewer = args.workdir / "craft_demo", args.workdir / "craft_demo.mcap", args.workdir / "viewer"
     repo_id = "local/craft_quickstart"
-    print(f"[1/3] recording {3 * args.episodes_per_task} expert episodes into {root}", flush=True)
+    print(f"[1/5] recording {3 * args.episodes_per_task} expert episodes into {root}", flush=True)
     subprocess.run(
         [sys.executable, "-m", "ocn_data.record_demos", "--tasks", "AC,CD,DA", "--episodes-per-task",
          str(args.episodes_per_task), "--root", str(root), "--repo-id", repo_id, "--seed", str(args.seed),
@@ -39,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
         check=True,
     )
 
-    print("[2/3] reading it back with LeRobot", flush=True)
+    print("[2/5] reading it back with LeRobot", flush=True)
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset(repo_id, root=root)
@@ -50,9 +56,28 @@ def main(argv: list[str] | None = None) -> int:
         mine = lengths[[t == task for t in tasks]]
         print(f"  {task!r}: {len(mine)} episodes, mean length {mine.mean():.1f} steps")
 
-    print(f"[3/3] writing a rerun viewer file of episode 0 into {viewer}", flush=True)
+    train_dir, eval_json = args.workdir / "train", args.workdir / "eval.json"
+    print(f"[3/5] training OCN for {args.train_steps} steps with lerobot-train into {train_dir}", flush=True)
     subprocess.run(
-        [str(Path(sys.executable).with_name("lerobot-dataset-viz")), "--repo-id", repo_id, "--root", str(root),
+        [console_script("lerobot-train"), "--policy.type=ocn", f"--dataset.repo_id={repo_id}", f"--dataset.root={root}",
+         "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false", "--env_eval_freq=0",
+         f"--steps={args.train_steps}", f"--batch_size={args.batch_size}", "--num_workers=1",
+         f"--save_freq={args.train_steps}", f"--log_freq={max(1, args.train_steps // 4)}",
+         f"--policy.window_size={int(lengths.max())}", f"--seed={args.seed}", f"--output_dir={train_dir}"],
+        check=True,
+    )
+
+    checkpoint = train_dir / "checkpoints" / "last" / "pretrained_model"
+    print(f"[4/5] evaluating {checkpoint} with ocn-eval", flush=True)
+    subprocess.run(
+        [console_script("ocn-eval"), "--policy", str(checkpoint), "--root", str(root), "--repo-id", repo_id,
+         "--out", str(eval_json), "--rollouts", "20"],
+        check=True,
+    )
+
+    print(f"[5/5] writing a rerun viewer file of episode 0 into {viewer}", flush=True)
+    subprocess.run(
+        [console_script("lerobot-dataset-viz"), "--repo-id", repo_id, "--root", str(root),
          "--episode-index", "0", "--mode", "local", "--save", "1", "--output-dir", str(viewer)],
         check=True,
         capture_output=True,
@@ -60,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     rrd = sorted(viewer.glob("*.rrd"))
     if not rrd:
         raise SystemExit(f"ocn-quickstart: lerobot-dataset-viz wrote no .rrd file into {viewer}")
-    print(f"done: dataset {root}, MCAP log {mcap}, viewer file {rrd[0]} (open it with `rerun {rrd[0]}`)")
+    print(f"done: dataset {root}, MCAP log {mcap}, checkpoint {checkpoint}, scores {eval_json}, "
+          f"option table {eval_json.with_suffix('.png')}, viewer file {rrd[0]} (open it with `rerun {rrd[0]}`)")
     return 0
 
 

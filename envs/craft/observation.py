@@ -65,33 +65,55 @@ MAP_DIM = N_BLOCKS * N_BLOCKS * N_KINDS
 OMPN_DIM = EGO_DIM + MAP_DIM + N_KINDS + 4
 
 
-def ompn_features(state: torch.Tensor) -> torch.Tensor:
-    """Map compact states [..., 81] (any int dtype) to OMPN features [..., 1075] float32."""
+N_ACTIVE = WINDOW * WINDOW + GRID_SIZE * GRID_SIZE + (N_KINDS - INVENTORY_FIRST_KIND) + 1
+
+
+def ompn_active_entries(state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The OMPN features of compact states [..., 81] as N_ACTIVE (index, value) pairs per state:
+    a scatter-add of these builds the features in one op (4x faster than stacking one-hots).
+
+    Every state sets the same number of entries: 25 window cells, 100 grid cells (each adds 1 to
+    its block's count of its kind; repeated indices add up), 14 inventory counts and the facing.
+    Returns index [..., N_ACTIVE] int64 and value [..., N_ACTIVE] float32.
+    """
     import torch
-    import torch.nn.functional as F
 
     lead = state.shape[:-1]
     s = state.reshape(-1, OBS_DIM).long()
     b = s.shape[0]
+    device = s.device
     # Pad by the window radius beyond the border so every window stays in bounds.
     pad = WINDOW // 2
     size = GRID_SIZE + 2 * pad
-    board = torch.ones((b, size, size), dtype=torch.long, device=s.device)
+    board = torch.ones((b, size, size), dtype=torch.long, device=device)
     inner = slice(pad + 1, pad + 1 + INTERIOR_SIZE)
     board[:, inner, inner] = s[:, CELLS].view(b, INTERIOR_SIZE, INTERIOR_SIZE)
 
-    offsets = torch.arange(WINDOW, device=s.device)
+    offsets = torch.arange(WINDOW, device=device)
     rows = (s[:, AGENT_ROW, None] + 1 + offsets)[:, :, None]
     cols = (s[:, AGENT_COL, None] + 1 + offsets)[:, None, :]
-    window = board[torch.arange(b, device=s.device)[:, None, None], rows, cols]
-    ego = F.one_hot(window, N_KINDS).reshape(b, EGO_DIM)
+    window = board[torch.arange(b, device=device)[:, None, None], rows, cols].reshape(b, -1)
+    ego = torch.arange(WINDOW * WINDOW, device=device) * N_KINDS + window
 
-    grid = board[:, pad : pad + GRID_SIZE, pad : pad + GRID_SIZE]
-    blocks = F.one_hot(grid, N_KINDS).view(b, N_BLOCKS, BLOCK, N_BLOCKS, BLOCK, N_KINDS).sum(dim=(2, 4))
+    grid = board[:, pad : pad + GRID_SIZE, pad : pad + GRID_SIZE].reshape(b, -1)
+    cell = torch.arange(GRID_SIZE * GRID_SIZE, device=device)
+    block = (cell // GRID_SIZE // BLOCK) * N_BLOCKS + (cell % GRID_SIZE) // BLOCK
+    coarse = EGO_DIM + block * N_KINDS + grid
 
-    inventory = torch.zeros((b, N_KINDS), dtype=torch.long, device=s.device)
-    inventory[:, INVENTORY_FIRST_KIND:] = s[:, INVENTORY]
-    facing = F.one_hot(s[:, FACING], 4)
+    carried = torch.arange(INVENTORY_FIRST_KIND, N_KINDS, device=device).expand(b, -1)
+    inventory = EGO_DIM + MAP_DIM + carried
+    facing = EGO_DIM + MAP_DIM + N_KINDS + s[:, FACING, None]
 
-    out = torch.cat([ego, blocks.reshape(b, MAP_DIM), inventory, facing], dim=1).float()
-    return out.reshape(*lead, OMPN_DIM)
+    index = torch.cat([ego, coarse, inventory, facing], dim=1)
+    value = torch.ones(index.shape, dtype=torch.float32, device=device)
+    value[:, WINDOW * WINDOW + GRID_SIZE * GRID_SIZE : -1] = s[:, INVENTORY].float()
+    return index.reshape(*lead, N_ACTIVE), value.reshape(*lead, N_ACTIVE)
+
+
+def ompn_features(state: torch.Tensor) -> torch.Tensor:
+    """Map compact states [..., 81] (any int dtype) to OMPN features [..., 1075] float32."""
+    import torch
+
+    index, value = ompn_active_entries(state)
+    dense = torch.zeros((*index.shape[:-1], OMPN_DIM), dtype=torch.float32, device=index.device)
+    return dense.scatter_add_(-1, index, value)

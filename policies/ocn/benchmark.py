@@ -90,7 +90,6 @@ def random_batch(policy: OCNPolicy, batch_size: int, window: int) -> dict:
         ACTION: torch.randint(0, policy.config.n_actions, (batch_size, window, 1)).float(),
         f"{ACTION}_is_pad": torch.zeros(batch_size, window, dtype=torch.bool),
         "task": [BENCH_TASKS[i % len(BENCH_TASKS)] for i in range(batch_size)],
-        "timestamp": torch.zeros(batch_size),
     }
 
 

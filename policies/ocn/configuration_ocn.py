@@ -11,7 +11,7 @@ from envs.craft.observation import OBS_DIM as CRAFT_STATE_DIM
 
 OBS_ENCODERS = ("craft", "identity")
 ACTION_TYPES = ("discrete", "continuous")
-WINDOW_STARTS = ("episode_start_only", "any")
+WINDOW_STARTS = ("episode", "any")
 INFERENCE_MODES = ("sample", "greedy")
 
 
@@ -25,14 +25,20 @@ def _check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
 class OCNConfig(PreTrainedConfig):
     """Hyperparameters of OCN (paper section 3, appendix A.2) plus the LeRobot plumbing.
 
-    Training windows: LeRobot's sampler starts a `window_size`-frame window at every frame of every
-    episode. `window_start` says what OCN does with a window that starts mid-episode:
-    - "episode_start_only" (default): only windows whose first frame is an episode start (its
-      `timestamp` is 0) enter the loss; the others are dropped before the recurrence runs. This is
-      the paper's setting (the controller starts every demonstration from its task's initial state),
-      at the price of using about one window per episode of each batch.
-    - "any": every window start is treated as t = 1, i.e. as a fresh episode. Uses every window but
-      tells the controller that a task restarts where it does not.
+    Training windows: LeRobot's sampler starts a window at every frame of every episode and clamps
+    offsets that leave the episode, flagging them in `*_is_pad`. `window_start` says how OCN turns
+    such a window into a training sequence:
+    - "episode" (default): the window reaches `window_size - 1` frames either side of the sampled
+      frame, so it always holds its whole episode when episodes are at most `window_size` frames
+      long (checked against the dataset when the policy is built). The policy shifts each window to
+      its first real frame, so every sampled frame trains on its whole episode from t = 1 with the
+      task's initial controller state: the paper's setting, and no window starts mid-episode.
+    - "any": the window is the `window_size` frames from the sampled frame on, and its first frame
+      is treated as t = 1 of a fresh episode. Half the frames to load, but the controller is told
+      that a task restarts where it does not.
+    Both average the NLL over each window's real frames first, then over windows: sampling windows
+    at every frame weights an episode by its length, so this is the per-frame mean NLL of the
+    dataset in expectation.
     """
 
     n_options: int = 3
@@ -41,8 +47,8 @@ class OCNConfig(PreTrainedConfig):
     mlp_depth: int = 2
     temperature: float = 10.0
 
-    window_size: int = 64
-    window_start: str = "episode_start_only"
+    window_size: int = 32
+    window_start: str = "episode"
 
     obs_encoder: str = "craft"
     action_type: str = "discrete"
@@ -56,6 +62,10 @@ class OCNConfig(PreTrainedConfig):
     inference_mode: str = "sample"
 
     optimizer_lr: float = 1e-3
+    # The controller's learning rate is optimizer_lr * controller_lr_scale. The paper slows the
+    # controller by dividing its logits by T, which also shrinks its gradients; Adam normalises
+    # gradient scale away, so this is the way to keep the controller slower under Adam.
+    controller_lr_scale: float = 1.0
     optimizer_grad_clip_norm: float = 10.0
 
     # Empty means "derive from obs_encoder and action_type" (see `__post_init__`).
@@ -69,6 +79,8 @@ class OCNConfig(PreTrainedConfig):
         _check_choice("inference_mode", self.inference_mode, INFERENCE_MODES)
         if self.n_options < 1 or self.mlp_depth < 1 or self.window_size < 1:
             raise ValueError("n_options, mlp_depth and window_size must all be >= 1.")
+        if self.controller_lr_scale <= 0:
+            raise ValueError(f"controller_lr_scale must be > 0, got {self.controller_lr_scale}.")
         if self.temperature <= 0:
             raise ValueError(f"temperature must be > 0, got {self.temperature}.")
         if not self.normalization_mapping:
@@ -82,11 +94,13 @@ class OCNConfig(PreTrainedConfig):
 
     @property
     def observation_delta_indices(self) -> list[int]:
+        if self.window_start == "episode":
+            return list(range(1 - self.window_size, self.window_size))
         return list(range(self.window_size))
 
     @property
     def action_delta_indices(self) -> list[int]:
-        return list(range(self.window_size))
+        return self.observation_delta_indices
 
     @property
     def reward_delta_indices(self) -> None:

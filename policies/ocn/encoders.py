@@ -18,7 +18,7 @@ class CraftEncoder(nn.Module):
 
     def forward(self, state: Tensor) -> Tensor:
         ids = state.round().long() if state.is_floating_point() else state.long()
-        return ompn_features(ids).float()
+        return ompn_features(ids)
 
 
 class IdentityEncoder(nn.Module):

@@ -1,8 +1,8 @@
 """OCN as a LeRobot policy: batch plumbing, the NLL loss (eq. 18), stateful inference and parsing.
 
 Batches arrive as LeRobot builds them: `observation.state` [B, T, S] and `action` [B, T, A]
-windows with `*_is_pad` masks [B, T], the task strings in `batch["task"]`, and the window's first
-frame `timestamp` [B], which is 0 exactly at an episode start (LeRobot writes frame_index / fps).
+windows with `*_is_pad` masks [B, T] and the task strings in `batch["task"]`. How a window becomes
+a training sequence is `OCNConfig.window_start`'s business (see its docstring).
 """
 
 from collections.abc import Sequence
@@ -12,6 +12,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from lerobot.datasets.io_utils import load_episodes
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 
@@ -21,7 +22,6 @@ from .heads import make_action_head, mixture_log_prob
 from .recurrence import OCNCore, OCNState, StepOutput
 
 PAD_KEYS = (f"{ACTION}_is_pad", f"{OBS_STATE}_is_pad")
-EPISODE_START_TOLERANCE_S = 1e-6
 
 
 @dataclass
@@ -49,6 +49,33 @@ def frame_mask(batch: dict[str, Any]) -> Tensor:
     return valid
 
 
+def align_to_first_frame(valid: Tensor, length: int, *windows: Tensor) -> tuple[Tensor, ...]:
+    """Shift each row of windows [B, W', ...] so that it starts at its first real frame.
+
+    Returns the mask [B, length] of the shifted rows, then each window cut to [B, length, ...].
+    Positions past the window's end read its last frame and are masked out.
+    """
+    width = valid.shape[1]
+    first = valid.int().argmax(dim=1)
+    position = first.unsqueeze(1) + torch.arange(length, device=valid.device)
+    inside = position < width
+    index = position.clamp_max(width - 1)
+    mask = valid.gather(1, index) & inside
+    shifted = []
+    for window in windows:
+        gather_index = index.view(*index.shape, *([1] * (window.dim() - 2))).expand(-1, -1, *window.shape[2:])
+        shifted.append(window.gather(1, gather_index))
+    return (mask, *shifted)
+
+
+def episode_lengths(dataset_meta: Any) -> list[int]:
+    """Frames per episode of a LeRobot dataset (its episode table is read from disk if not loaded yet)."""
+    if dataset_meta.total_episodes == 0:
+        return []
+    episodes = dataset_meta.episodes if dataset_meta.episodes is not None else load_episodes(dataset_meta.root)
+    return [int(length) for length in episodes["length"]]
+
+
 class OCNPolicy(PreTrainedPolicy):
     """Option-Controller Network: a shared controller over N options, one initial state per task."""
 
@@ -70,6 +97,14 @@ class OCNPolicy(PreTrainedPolicy):
             config.tasks = tasks_from_meta(dataset_meta)
         if not config.tasks:
             raise ValueError("OCN needs its task list: set `tasks` or build the policy from a dataset.")
+        if dataset_meta is not None and config.window_start == "episode":
+            longest = max(episode_lengths(dataset_meta), default=0)
+            if longest > config.window_size:
+                raise ValueError(
+                    f"The dataset has episodes of up to {longest} frames but window_size is "
+                    f"{config.window_size}: with window_start='episode' a window must hold a whole "
+                    f"episode. Set --policy.window_size={longest} or more, or --policy.window_start=any."
+                )
         self._task_ids = {task: i for i, task in enumerate(config.tasks)}
         self.encoder = make_encoder(config)
         self.head = make_action_head(config)
@@ -85,8 +120,13 @@ class OCNPolicy(PreTrainedPolicy):
         )
         self.reset()
 
-    def get_optim_params(self) -> Any:
-        return self.parameters()
+    def get_optim_params(self) -> list[dict[str, Any]]:
+        """Two parameter groups: the controller (with its per-task initial states) and the rest."""
+        controller = [self.core.controller_init, *self.core.controller.parameters()]
+        chosen = {id(p) for p in controller}
+        rest = [p for p in self.parameters() if id(p) not in chosen]
+        scaled = self.config.optimizer_lr * self.config.controller_lr_scale
+        return [{"params": rest}, {"params": controller, "lr": scaled}]
 
     def reset(self) -> None:
         """Forget the recurrent state: the next `select_action` is t = 1 of new episodes."""
@@ -110,22 +150,17 @@ class OCNPolicy(PreTrainedPolicy):
         batch, steps = state.shape[:2]
         # Transpose the stored state rather than the (wider) features: the encoder then writes time-major.
         x = self.encoder(state.transpose(0, 1).contiguous())
-        start = torch.zeros(steps, batch, dtype=torch.bool, device=x.device)
+        start = torch.zeros(steps, batch, dtype=torch.bool, device=state.device)
         start[0] = True
         initial = self.core.initial_state(self.task_index(tasks, batch))
         return self.core.unroll(x, initial, start)[1]
 
-    def _usable_windows(self, batch: dict[str, Any]) -> Tensor:
-        """Windows [B] that enter the loss under `config.window_start`."""
-        size = batch[OBS_STATE].shape[0]
+    def _training_windows(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
+        """(mask [B, W], state [B, W, S], action [B, W, ...]) of sequences that each start at t = 1."""
+        valid = frame_mask(batch)
         if self.config.window_start == "any":
-            return torch.ones(size, dtype=torch.bool, device=batch[OBS_STATE].device)
-        if "timestamp" not in batch:
-            raise ValueError(
-                "window_start='episode_start_only' needs the batch's 'timestamp' to find episode starts."
-            )
-        first = batch["timestamp"].reshape(size, -1)[:, 0]
-        return first.abs() < EPISODE_START_TOLERANCE_S
+            return valid, batch[OBS_STATE], batch[ACTION]
+        return align_to_first_frame(valid, self.config.window_size, batch[OBS_STATE], batch[ACTION])
 
     def _action_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
         """log p^a_t(a_t) [B, T] for time-major outputs and batch-major actions [B, T, A].
@@ -137,28 +172,23 @@ class OCNPolicy(PreTrainedPolicy):
         return mixture_log_prob(out.weights, component).transpose(0, 1)
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
-        """Masked mean NLL of the mixed action distribution over the usable windows."""
-        usable = self._usable_windows(batch)
-        rows = usable.nonzero().squeeze(-1)
-        tasks = [batch["task"][i] for i in rows.tolist()]
-        mask = frame_mask(batch)[rows].float()
-        out = self._unroll(batch[OBS_STATE][rows], tasks)
-        nll = -self._action_log_prob(out, batch[ACTION][rows]) * mask
-        frames = mask.sum()
-        loss = nll.sum() / frames.clamp_min(1.0)
+        """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
+        mask, state, action = self._training_windows(batch)
+        out = self._unroll(state, batch["task"])
+        mask = mask.float()
+        frames = mask.sum(1)
+        nll = -self._action_log_prob(out, action) * mask
+        per_window = nll.sum(1) / frames.clamp_min(1.0)
         later = mask[:, 1:]
         end = out.end[1:].detach().transpose(0, 1)
         stats = {
-            "nll": loss.item(),
-            "windows_used": int(rows.numel()),
-            "frames_used": int(frames.item()),
+            "nll": per_window.mean().item(),
+            "frames_used": int(frames.sum().item()),
             "mean_end": float((end * later).sum() / later.sum().clamp_min(1.0)),
         }
         if reduction == "none":
-            per_window = torch.zeros(usable.shape[0], dtype=nll.dtype, device=nll.device)
-            per_window[rows] = nll.sum(1) / mask.sum(1).clamp_min(1.0)
             return per_window, stats
-        return loss, stats
+        return per_window.mean(), stats
 
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:
@@ -195,6 +225,26 @@ class OCNPolicy(PreTrainedPolicy):
         self.last_step = StepReport(out.p_c, out.p_c.argmax(-1), out.end)
         greedy = self.config.inference_mode == "greedy"
         return self.head.choose(out.weights, out.params, greedy).unsqueeze(1)
+
+    @torch.no_grad()
+    def act_with_options(
+        self, state: Tensor, option: Tensor, option_h: Tensor | None, restart: Tensor, greedy: bool
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """One step of a chosen option per row, with no controller: for running frozen options alone.
+
+        state [B, S] (preprocessed), option [B] (index), option_h [N, B, d_hid] from the previous call
+        (None at the first), restart [B]: rows whose option starts now from h^o_0. All options step
+        (they are one stacked cell); returns the chosen option's action [B, A], every option's new
+        state [N, B, d_hid], and the chosen option's termination probability e [B] (not meaningful
+        on a restart step, where an option never terminates).
+        """
+        size = state.shape[0]
+        initial = self.core.option_init.unsqueeze(1).expand(-1, size, -1)
+        h = initial if option_h is None else torch.where(restart[None, :, None], initial, option_h)
+        out = self.core.options.step(self.core.options.project(self.encoder(state)), h)
+        weights = torch.nn.functional.one_hot(option, self.config.n_options).to(out.logits.dtype)
+        action = self.head.choose(weights, out.logits, greedy)
+        return action, out.hidden, out.end.gather(0, option.unsqueeze(0)).squeeze(0)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:

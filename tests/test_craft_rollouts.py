@@ -1,0 +1,63 @@
+"""Rollouts of OCN in Craft used by `ocn-eval`: each option alone, and the whole policy."""
+
+import numpy as np
+import torch
+
+from envs.craft.batch import CraftBatch
+from envs.craft.world import USE
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.utils.constants import ACTION, OBS_STATE
+from policies.ocn import OCNConfig, OCNPolicy
+from tools.craft_rollouts import free_run_success, option_subtask_success
+
+TASK = "get wood, get iron"
+
+
+def identity(x):
+    return x
+
+
+def make_policy() -> OCNPolicy:
+    torch.manual_seed(0)
+    config = OCNConfig(
+        device="cpu", hidden_size=8, mlp_hidden_size=8, n_options=2, tasks=[TASK], inference_mode="greedy",
+        input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))},
+        output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))},
+    )
+    return OCNPolicy(config)
+
+
+def set_option_behaviour(policy: OCNPolicy, action: int, end_logit: float) -> None:
+    """Every option always picks `action` and terminates with probability sigmoid(end_logit)."""
+    with torch.no_grad():
+        out = policy.core.options
+        out.w_out[..., : out.n_out] = 0.0
+        out.b_out[..., : out.n_out] = -50.0
+        out.b_out[..., action] = 50.0
+        out.w_out[..., -1] = 0.0
+        out.b_out[..., -1] = end_logit
+
+
+def first_use_completes(subtask: str, episodes: int) -> float:
+    """Fraction of the maps (seeds 0..episodes-1) where `use` at step 1 already completes the subtask."""
+    craft = CraftBatch(episodes, mode="paper")
+    craft.reset(seeds=range(episodes), tasks=[subtask] * episodes)
+    craft.step(np.full(episodes, USE))
+    return float((craft.progress == 1).mean())
+
+
+def test_an_option_that_terminates_at_once_only_gets_its_first_step():
+    policy = make_policy()
+    set_option_behaviour(policy, action=USE, end_logit=50.0)
+    table = option_subtask_success(policy, identity, identity, ["A", "C"], episodes=64)
+    expected = [first_use_completes("A", 64), first_use_completes("C", 64)]
+    assert table.shape == (2, 2) and 0 < sum(expected)
+    assert np.allclose(table, [expected, expected])
+
+
+def test_an_option_that_never_ends_runs_to_the_step_limit():
+    policy = make_policy()
+    set_option_behaviour(policy, action=0, end_logit=-50.0)  # always "down": never uses anything
+    table = option_subtask_success(policy, identity, identity, ["A"], episodes=8)
+    assert np.array_equal(table, np.zeros((2, 1)))
+    assert free_run_success(policy, identity, identity, [TASK], episodes=8) == {TASK: 0.0}

@@ -1,0 +1,262 @@
+"""OCN through LeRobot's own CLIs: `lerobot-train --policy.type=ocn` and `lerobot-eval --env.type=craft`.
+
+One tiny dataset and one tiny training run are shared by the module; the CLIs run as real
+subprocesses, the env config and the rollout plumbing in process.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.envs.configs import EnvConfig
+from lerobot.envs.factory import make_env, make_env_config
+from lerobot.envs.utils import env_to_policy_features
+from lerobot.scripts.lerobot_eval import rollout
+from lerobot.utils.constants import ACTION, OBS_STATE
+from torch import nn
+
+import lerobot_policy_ocn  # noqa: F401  (registers `ocn` and `craft` as LeRobot's CLIs do)
+from envs.craft import CraftEnv, CraftExpert, parse_task, task_description
+from envs.craft.lerobot_config import CraftEnvConfig
+from envs.craft.lerobot_env import action_index
+from ocn_data.record_demos import main as record_demos
+from policies.ocn import OCNPolicy
+
+BIN = Path(sys.executable).parent
+REPO_ID = "local/ocn_it"
+STEPS = 4
+AC = task_description(parse_task("AC"))  # "get wood, get iron"
+
+
+def run_cli(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    proc = subprocess.run([str(BIN / name), *args], capture_output=True, text=True, timeout=300, cwd=cwd)
+    assert proc.returncode == 0, f"{name} failed ({proc.returncode}):\n{proc.stderr[-4000:]}"
+    return proc
+
+
+def identity(x):
+    return x
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> tuple[Path, Path]:
+    """(dataset root, checkpoint) of a few steps of OCN training on 12 demos of task AC."""
+    base = tmp_path_factory.mktemp("lerobot")
+    root = base / "ds"
+    args = ["--tasks", "AC", "--episodes-per-task", "12", "--root", str(root), "--repo-id", REPO_ID, "--seed", "1"]
+    assert record_demos(args) == 0
+    run_cli(
+        "lerobot-train",
+        "--policy.type=ocn",
+        f"--dataset.repo_id={REPO_ID}",
+        f"--dataset.root={root}",
+        "--policy.device=cpu",
+        "--policy.push_to_hub=false",
+        "--wandb.enable=false",
+        "--env_eval_freq=0",
+        f"--steps={STEPS}",
+        "--batch_size=4",
+        "--num_workers=0",
+        "--policy.hidden_size=16",
+        "--policy.mlp_hidden_size=16",
+        "--policy.window_size=24",
+        f"--output_dir={base / 'train'}",
+        cwd=base,
+    )
+    return root, base / "train" / "checkpoints" / f"{STEPS:06d}" / "pretrained_model"
+
+
+def episode_batch(root: Path, episode: int) -> dict:
+    """One whole episode as a batch of one: state [1, T, 81], action [1, T, 1] and its task string."""
+    ds = LeRobotDataset(REPO_ID, root=root)
+    table = ds.hf_dataset.with_format("numpy")
+    rows = np.flatnonzero(np.asarray(table["episode_index"]) == episode)
+    state = np.asarray(table["observation.state"])[rows]
+    action = np.asarray(table["action"])[rows]
+    return {
+        OBS_STATE: torch.from_numpy(state).float()[None],
+        ACTION: torch.from_numpy(action).float()[None],
+        "task": [ds.meta.episodes[episode]["tasks"][0]],
+    }
+
+
+def test_train_checkpoint_reloads_identically(trained):
+    root, checkpoint = trained
+    assert (checkpoint / "model.safetensors").is_file() and (checkpoint / "config.json").is_file()
+    first, second = OCNPolicy.from_pretrained(checkpoint), OCNPolicy.from_pretrained(checkpoint)
+    assert first.config.tasks == second.config.tasks == [AC]
+    assert first.config.hidden_size == 16 and first.config.window_size == 24
+
+    batch = episode_batch(root, 0)
+    assert batch["task"] == [AC]
+    parsed_first, parsed_second = first.parse(batch), second.parse(batch)
+    assert set(parsed_first) >= {"p_c", "option", "end", "mask", "action_log_prob"}
+    assert parsed_first["p_c"].shape == (1, batch[OBS_STATE].shape[1], first.config.n_options)
+    for key, value in parsed_first.items():
+        torch.testing.assert_close(value, parsed_second[key], rtol=0, atol=0, msg=key)
+    loss_first, _ = first.forward(batch)
+    loss_second, _ = second.forward(batch)
+    assert torch.isfinite(loss_first) and loss_first.item() > 0
+    assert loss_first.item() == loss_second.item()
+
+
+def test_lerobot_eval_counts_the_episode(trained):
+    _, checkpoint = trained
+    out = checkpoint.parents[3] / "eval"
+    run_cli(
+        "lerobot-eval",
+        f"--policy.path={checkpoint}",
+        "--env.type=craft",
+        "--env.task=AC",
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
+        "--policy.device=cpu",
+        f"--output_dir={out}",
+        cwd=checkpoint.parents[3],
+    )
+    info = json.loads((out / "eval_info.json").read_text())
+    overall = info["overall"]
+    assert overall["n_episodes"] == 1
+    assert overall["pc_success"] in (0.0, 100.0)
+    assert 0.0 <= overall["avg_sum_reward"] <= 2.0
+    metrics = info["per_task"][0]["metrics"]
+    assert info["per_task"][0]["task_group"] == "craft"
+    assert len(metrics["successes"]) == len(metrics["sum_rewards"]) == 1
+    assert Path(metrics["video_paths"][0]).is_file()
+
+
+def test_unknown_task_names_the_known_ones(trained):
+    _, checkpoint = trained
+    policy = OCNPolicy.from_pretrained(checkpoint)
+    vec = make_env(make_env_config("craft", task="CD"), n_envs=1)["craft"][0]
+    with pytest.raises(ValueError, match=r"Unknown task 'get iron, get grass'.*'get wood, get iron'"):
+        rollout(vec, policy, identity, identity, identity, identity, seeds=[0])
+    vec.close()
+
+
+def test_config_features_and_registration():
+    cfg = make_env_config("craft")
+    assert isinstance(cfg, CraftEnvConfig) and EnvConfig.get_choice_class("craft") is CraftEnvConfig
+    fields = (cfg.type, cfg.task, cfg.mode, cfg.reward, cfg.max_steps, cfg.fps)
+    assert fields == ("craft", "AC", "paper", "dense", None, 10)
+    assert env_to_policy_features(cfg) == {
+        ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(1,)),
+        OBS_STATE: PolicyFeature(type=FeatureType.STATE, shape=(81,)),
+    }
+
+
+def test_gym_kwargs_reach_every_sub_env():
+    cfg = make_env_config("craft", task="ACD", mode="full", reward="sparse", max_steps=7)
+    expected = {"task": "ACD", "mode": "full", "reward": "sparse", "max_steps": 7, "render_mode": "rgb_array"}
+    assert cfg.gym_kwargs == expected
+    vec = make_env(cfg, n_envs=2)["craft"][0]
+    assert vec.call("_max_episode_steps") == (7, 7)
+    assert vec.call("task_description") == (task_description(parse_task("ACD")),) * 2
+    craft = vec.envs[1].unwrapped
+    assert (craft.task, craft.mode, craft.batch.reward) == ("ACD", "full", "sparse")
+    assert craft.render_mode == "rgb_array"
+    obs, _ = vec.reset(seed=[3, 4])
+    np.testing.assert_array_equal(obs["agent_pos"][1], CraftEnv("ACD", mode="full").reset(seed=4)[0])
+    assert vec.envs[0].render().shape == (160, 160, 3)
+    vec.close()
+    default = make_env(make_env_config("craft", task="ACD"), n_envs=1)["craft"][0]
+    assert default.call("_max_episode_steps") == (100,)  # the env's own limit for three subtasks
+    default.close()
+
+
+def test_action_casting():
+    assert action_index(np.array([3.0], dtype=np.float32)) == 3
+    assert action_index(np.int64(0)) == 0
+    for bad in (2.5, -1.0, 5.0, float("nan")):
+        with pytest.raises(ValueError, match=r"integer indices in \[0, 4\] \(down, up, left, right, use\); got"):
+            action_index(np.array([bad]))
+    with pytest.raises(ValueError, match=r"one action index per step, got an action of shape \(2,\)"):
+        action_index(np.array([1.0, 2.0]))
+    vec = make_env(make_env_config("craft"), n_envs=2)["craft"][0]
+    vec.reset(seed=0)
+    with pytest.raises(ValueError, match="got 0.5"):
+        vec.step(np.array([[1.0], [0.5]], dtype=np.float32))
+    vec.close()
+
+
+class ExpertPolicy(nn.Module):
+    """The scripted expert behind LeRobot's policy interface, acting in each sub-env's own batch."""
+
+    def __init__(self, vec) -> None:
+        super().__init__()
+        self.vec = vec
+        self.experts: list[CraftExpert] | None = None
+
+    def reset(self) -> None:
+        self.experts = None
+
+    def select_action(self, observation: dict) -> torch.Tensor:
+        assert observation["task"] == [AC] * self.vec.num_envs
+        assert observation[OBS_STATE].shape == (self.vec.num_envs, 81)
+        if self.experts is None:
+            self.experts = [CraftExpert(env.unwrapped.batch) for env in self.vec.envs]
+        return torch.tensor([[float(expert.act()[0])] for expert in self.experts])
+
+
+def test_rollout_counts_successes_and_rewards_once():
+    """Episodes of different lengths under same-step autoreset: each success counted, and a finished
+    sub-env stays on its last state (no new episode leaks into the step lerobot-eval still keeps)."""
+    vec = make_env(make_env_config("craft", task="AC"), n_envs=3)["craft"][0]
+    for seeds in ([0, 1, 2], [5, 6, 7]):
+        out = rollout(
+            vec, ExpertPolicy(vec), identity, identity, identity, identity, seeds=seeds, return_observations=True
+        )
+        done_at = out["done"].int().argmax(1)
+        assert len(set(done_at.tolist())) > 1  # the sub-envs really finish at different steps
+        keep = torch.arange(out["done"].shape[1]) <= (done_at + 1)[:, None]  # lerobot-eval's mask
+        assert (out["success"] & keep).any(1).all()
+        torch.testing.assert_close((out["reward"] * keep).sum(1), torch.full((3,), 2.0, dtype=torch.float64))
+        states = out["observation"][OBS_STATE]  # [3, steps + 1, 81]; index t + 1 follows action t
+        for i, end in enumerate(done_at.tolist()):
+            assert states[i, end].ne(states[i, end + 1]).any()  # the last action changed the state
+            assert (states[i, end + 1 :] == states[i, end + 1]).all()  # then it stays frozen
+    vec.close()
+
+
+def test_ocn_eval_scores_the_checkpoint_on_the_validation_split(trained, tmp_path):
+    root, checkpoint = trained
+    out = tmp_path / "eval.json"
+    run_cli(
+        "ocn-eval", "--policy", str(checkpoint), "--root", str(root), "--repo-id", REPO_ID,
+        "--out", str(out), "--rollouts", "3", cwd=tmp_path,
+    )
+    result = json.loads(out.read_text())
+    for key in ("f1_tol0", "f1_tol1", "align_acc", "nmi", "mean_success_rate"):
+        assert 0.0 <= result[key] <= 1.0, key
+    assert result["f1_tol1"] >= result["f1_tol0"]
+    info = json.loads((root / "meta" / "info.json").read_text())
+    start, stop = map(int, info["splits"]["val"].split(":"))
+    assert result["episodes_parsed"] == stop - start
+    table = result["option_subtask_success"]
+    assert table["subtasks"] == ["A", "C"] and np.array(table["table"]).shape == (3, 2)
+    assert list(result["success_rate"]) == [AC]
+    assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_ocn_eval_names_bad_input(trained, tmp_path):
+    root, checkpoint = trained
+    proc = subprocess.run(
+        [str(BIN / "ocn-eval"), "--policy", str(tmp_path), "--root", str(root), "--repo-id", REPO_ID,
+         "--out", str(tmp_path / "x.json")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 2 and "config.json" in proc.stderr
+    proc = subprocess.run(
+        [str(BIN / "ocn-eval"), "--policy", str(checkpoint), "--root", str(root), "--repo-id", REPO_ID,
+         "--split", "test", "--out", str(tmp_path / "x.json")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 2 and "no split 'test'" in proc.stderr

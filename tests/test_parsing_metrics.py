@@ -1,0 +1,93 @@
+"""The shared parsing metrics against hand-computed cases."""
+
+import math
+
+import numpy as np
+import pytest
+
+from tools.parsing_metrics import (
+    boundaries_from_labels,
+    f1_with_tolerance,
+    normalized_mutual_info,
+    option_table_summary,
+    parsing_scores,
+    task_alignment_accuracy,
+)
+
+
+def test_boundaries_are_segment_ends_including_the_last_step():
+    assert boundaries_from_labels([0, 0, 0, 1, 1, 2]).tolist() == [2, 4, 5]
+    assert boundaries_from_labels([3, 3, 3]).tolist() == [2]
+    assert boundaries_from_labels([]).tolist() == []
+
+
+def test_f1_exact_and_with_tolerance():
+    true = [np.array([2, 5])]
+    off_by_one = [np.array([3, 5])]
+    # tol 0: precision 1/2, recall 1/2 -> F1 1/2; tol 1: both boundaries matched.
+    assert f1_with_tolerance(true, off_by_one, 0) == pytest.approx(0.5)
+    assert f1_with_tolerance(true, off_by_one, 1) == pytest.approx(1.0)
+    assert f1_with_tolerance(true, true, 0) == pytest.approx(1.0)
+
+
+def test_f1_counts_are_summed_over_episodes():
+    true = [np.array([2, 5]), np.array([1, 3, 7])]
+    predicted = [np.array([5]), np.array([0, 3, 6, 7])]
+    # precise: 1 + 2 = 3 of 5 predicted; recalled: 1 + 2 = 3 of 5 true.
+    assert f1_with_tolerance(true, predicted, 0) == pytest.approx(2 * 0.6 * 0.6 / 1.2)
+    # tol 1: precise 1 + 4 = 5/5, recalled 1 + 3 = 4/5.
+    assert f1_with_tolerance(true, predicted, 1) == pytest.approx(2 * 1.0 * 0.8 / 1.8)
+    assert f1_with_tolerance(true, [np.array([], dtype=int), np.array([], dtype=int)], 1) == 0.0
+    with pytest.raises(ValueError, match="episodes"):
+        f1_with_tolerance(true, predicted[:1], 0)
+
+
+def test_task_alignment_matches_segments_in_order():
+    segments = [np.array([0, 0, 0, 1, 1, 1])]
+    assert task_alignment_accuracy(segments, [np.array([2, 5])]) == 1.0
+    # Boundary one step late: step 3 is labelled with subtask 0 -> 5/6.
+    assert task_alignment_accuracy(segments, [np.array([3, 5])]) == pytest.approx(5 / 6)
+    # A third predicted segment has no true subtask to match: steps 4, 5 count as wrong.
+    assert task_alignment_accuracy(segments, [np.array([1, 3, 5])]) == pytest.approx(3 / 6)
+    # One segment for the whole episode: only subtask 0's steps are right.
+    assert task_alignment_accuracy(segments + [np.array([0, 1])], [np.array([5]), np.array([0, 1])]) == (
+        pytest.approx((3 + 2) / 8)
+    )
+
+
+def test_nmi_hand_cases():
+    assert normalized_mutual_info([0, 0, 1, 1], [5, 5, 7, 7]) == pytest.approx(1.0)
+    assert normalized_mutual_info([0, 1, 0, 1], [0, 0, 1, 1]) == pytest.approx(0.0)
+    assert normalized_mutual_info([2, 2, 2], [1, 1, 1]) == 1.0
+    # a = [0,0,1,1], b = [0,0,0,1]: H(a) = ln 2, H(b) = H(3/4, 1/4), MI = H(a) + H(b) - H(a, b).
+    h_b = -(0.75 * math.log(0.75) + 0.25 * math.log(0.25))
+    h_ab = -(0.5 * math.log(0.5) + 2 * 0.25 * math.log(0.25))
+    expected = (math.log(2) + h_b - h_ab) / ((math.log(2) + h_b) / 2)
+    assert normalized_mutual_info([0, 0, 1, 1], [0, 0, 0, 1]) == pytest.approx(expected)
+    with pytest.raises(ValueError, match="shape"):
+        normalized_mutual_info([0, 1], [0])
+
+
+def test_parsing_scores_of_a_perfect_option_parse():
+    segments = [np.array([0, 0, 1, 1, 1]), np.array([0, 1, 1])]
+    subtasks = [np.array([0, 0, 2, 2, 2]), np.array([2, 3, 3])]
+    options = [np.array([1, 1, 0, 0, 0]), np.array([0, 2, 2])]
+    scores = parsing_scores(segments, subtasks, [boundaries_from_labels(o) for o in options], options)
+    assert scores == pytest.approx({"f1_tol0": 1.0, "f1_tol1": 1.0, "align_acc": 1.0, "nmi": 1.0})
+    shuffled = [np.array([1, 0, 1, 0, 1]), np.array([0, 2, 0])]
+    worse = parsing_scores(segments, subtasks, [boundaries_from_labels(o) for o in shuffled], shuffled)
+    assert worse["f1_tol0"] < 1.0 and worse["nmi"] < 0.5
+
+
+def test_option_table_matches_options_to_subtasks():
+    table = np.array([[0.1, 0.97, 0.0], [0.0, 0.05, 0.99], [0.96, 0.08, 0.02]])
+    summary = option_table_summary(table)
+    assert summary["option_of_subtask"] == {0: 2, 1: 0, 2: 1}
+    assert summary["diagonal"] == [0.96, 0.97, 0.99]
+    assert summary["off_diagonal_max"] == pytest.approx(0.1)
+    # Two options for three subtasks: the third subtask has no option of its own.
+    two = option_table_summary(table[[0, 2]])
+    assert two["option_of_subtask"] == {0: 1, 1: 0} and two["diagonal_min"] == pytest.approx(0.96)
+    # Six options: the three best-matched ones are read, the spare ones ignored.
+    six = option_table_summary(np.vstack([table, np.full((3, 3), 0.5)]))
+    assert six["diagonal_mean"] == pytest.approx((0.96 + 0.97 + 0.99) / 3)

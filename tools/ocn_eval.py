@@ -1,0 +1,174 @@
+"""`ocn-eval`: how well a trained OCN parses held-out demonstrations, and how well it acts.
+
+On the split's episodes (default "val") it runs the policy over each whole episode and scores the
+per-step chosen option (argmax p^c) against the ground-truth subtasks with the shared parsing
+metrics (F1 at tolerance 0 and 1, task alignment, NMI). In the Craft env it measures each frozen
+option alone on each subtask (paper table 1) and the whole policy's free-run success per task.
+Writes the JSON and a PNG of the option x subtask table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="ocn-eval", description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("--policy", type=Path, required=True, help="a pretrained_model folder of an ocn checkpoint")
+    parser.add_argument("--root", type=Path, required=True, help="the LeRobot dataset's folder")
+    parser.add_argument("--repo-id", required=True, help="the dataset's repo id, recorded in the output")
+    parser.add_argument("--split", default="val", help="split of meta/info.json to parse: train, val or all")
+    parser.add_argument("--out", type=Path, required=True, help="JSON file to write; the PNG goes beside it")
+    parser.add_argument("--max-episodes", type=int, default=None, help="parse at most this many split episodes")
+    parser.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per table cell")
+    parser.add_argument("--seed", type=int, default=100_000, help="first env seed (away from recording seeds)")
+    parser.add_argument("--batch-size", type=int, default=1024, help="episodes per parsing batch")
+    parser.add_argument("--device", default="cpu")
+    return parser.parse_args(argv)
+
+
+def _recording_settings(root: Path) -> dict[str, Any]:
+    """Env mode of the dataset from record_demos' provenance file (paper mode if absent)."""
+    path = root / "meta" / "ocn_recording.json"
+    if not path.exists():
+        return {"mode": "paper"}
+    return json.loads(path.read_text())["sessions"][-1]
+
+
+def _subtask_letters(tasks: list[str], mode: str) -> list[str]:
+    """Subtasks used by the tasks, as letters, in order of first use."""
+    from envs.craft.world import SUBTASK_LETTERS, parse_task
+
+    used = dict.fromkeys(s for task in tasks for s in parse_task(task, mode))
+    return [SUBTASK_LETTERS[s] for s in used]
+
+
+def parse_episodes(policy: Any, preprocessor: Any, episodes: Any, batch_size: int) -> list[np.ndarray]:
+    """Per episode, the chosen option (argmax p^c) at each real step."""
+    import torch
+
+    from lerobot.utils.constants import ACTION, OBS_STATE
+
+    options = []
+    for start in range(0, len(episodes.tasks), batch_size):
+        rows = slice(start, start + batch_size)
+        batch = {
+            OBS_STATE: torch.from_numpy(episodes.state[rows]).float(),
+            ACTION: torch.from_numpy(episodes.action[rows]).float(),
+            f"{ACTION}_is_pad": torch.from_numpy(~episodes.mask[rows]),
+            "task": episodes.tasks[rows],
+        }
+        parsed = policy.parse(preprocessor(batch))
+        chosen = parsed["option"].cpu().numpy()
+        options.extend(chosen[i, :length] for i, length in enumerate(episodes.lengths[rows]))
+    return options
+
+
+def plot_option_table(table: np.ndarray, subtasks: list[str], path: Path, title: str) -> None:
+    """Heat map of option x subtask success rates, values printed in the cells."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(1.2 + 1.1 * len(subtasks), 1.0 + 0.8 * table.shape[0]))
+    ax.imshow(table, vmin=0.0, vmax=1.0, cmap="viridis")
+    for (i, j), value in np.ndenumerate(table):
+        ax.text(j, i, f"{value:.2f}", ha="center", va="center", color="white" if value < 0.6 else "black")
+    ax.set_xticks(range(len(subtasks)), subtasks)
+    ax.set_yticks(range(table.shape[0]), [f"option {i}" for i in range(table.shape[0])])
+    ax.set_xlabel("subtask")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    """Everything `ocn-eval` reports, as the JSON it writes."""
+    import torch
+
+    from lerobot.policies.factory import make_pre_post_processors
+    from ocn_data.episodes_table import load_episodes, split_episodes
+    from policies.ocn import OCNPolicy
+    from tools.craft_rollouts import free_run_success, option_subtask_success
+    from tools.parsing_metrics import boundaries_from_labels, parsing_scores
+
+    if not (args.policy / "config.json").exists():
+        raise FileNotFoundError(f"{args.policy} holds no config.json: pass a checkpoint's pretrained_model folder.")
+    info = json.loads((args.root / "meta" / "info.json").read_text())
+    if info.get("robot_type") not in (None, "craft"):
+        raise ValueError(f"ocn-eval runs Craft datasets; {args.root} has robot_type {info.get('robot_type')!r}.")
+    policy = OCNPolicy.from_pretrained(args.policy)
+    policy.config.device = args.device
+    policy.to(args.device).eval()
+    preprocessor, postprocessor = make_pre_post_processors(
+        policy.config, pretrained_path=str(args.policy), preprocessor_overrides={"device_processor": {"device": args.device}}
+    )
+    started = time.perf_counter()
+    episodes = load_episodes(args.root, split_episodes(args.root, args.split), args.max_episodes)
+    unknown = sorted(set(episodes.tasks) - set(policy.config.tasks))
+    if unknown:
+        raise ValueError(f"The dataset has tasks {unknown} that the policy was not trained on ({policy.config.tasks}).")
+    with torch.no_grad():
+        options = parse_episodes(policy, preprocessor, episodes, args.batch_size)
+    segments = [episodes.subtask_index[i, :n] for i, n in enumerate(episodes.lengths)]
+    subtasks = [episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)]
+    scores = parsing_scores(segments, subtasks, [boundaries_from_labels(o) for o in options], options)
+
+    mode = _recording_settings(args.root)["mode"]
+    tasks = sorted(set(episodes.tasks), key=policy.config.tasks.index)
+    letters = _subtask_letters(tasks, mode)
+    table = option_subtask_success(policy, preprocessor, postprocessor, letters, args.rollouts, mode, args.seed)
+    success = free_run_success(policy, preprocessor, postprocessor, tasks, args.rollouts, mode, args.seed)
+    return {
+        **scores,
+        "option_subtask_success": {
+            "subtasks": letters,
+            "rows": [f"option {i}" for i in range(table.shape[0])],
+            "table": table.round(4).tolist(),
+        },
+        "success_rate": success,
+        "mean_success_rate": float(np.mean(list(success.values()))),
+        "episodes_parsed": len(options),
+        "frames_parsed": int(episodes.lengths.sum()),
+        "split": args.split,
+        "rollouts_per_cell": args.rollouts,
+        "policy": str(args.policy),
+        "dataset": {"root": str(args.root), "repo_id": args.repo_id},
+        "wall_s": round(time.perf_counter() - started, 2),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    try:
+        result = evaluate(args)
+    except (FileNotFoundError, ValueError) as error:
+        print(f"ocn-eval: {error}", file=sys.stderr)
+        return 2
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    table = result["option_subtask_success"]
+    png = args.out.with_suffix(".png")
+    run = "/".join(args.policy.parts[-6:-3])
+    plot_option_table(np.array(table["table"]), table["subtasks"], png, f"option x subtask success\n{run}")
+    print(
+        f"F1@0 {result['f1_tol0']:.3f}  F1@1 {result['f1_tol1']:.3f}  align {result['align_acc']:.3f}  "
+        f"NMI {result['nmi']:.3f}  success {result['success_rate']}"
+    )
+    print(f"wrote {args.out} and {png}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
