@@ -264,10 +264,10 @@ def main(argv: list[str] | None = None) -> int:
                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     s1.add_argument("--seeds", type=int, default=5, help="seeds of the main variant (3 options, T=10)")
     s1.add_argument("--ablation-seeds", type=int, default=1, help="seeds of each ablation; 0 skips them")
-    s1.add_argument("--steps", type=int, default=3000, help="lerobot-train steps per run")
+    s1.add_argument("--steps", type=int, default=5000, help="lerobot-train steps per run")
     s1.add_argument("--batch-size", type=int, default=128, help="windows (episodes) per step")
     s1.add_argument("--window-size", type=int, default=24, help="longest episode a window holds")
-    s1.add_argument("--controller-lr-scale", type=float, default=0.1,
+    s1.add_argument("--controller-lr-scale", type=float, default=1.0,
                     help="controller learning rate / the options' (see OCNConfig.controller_lr_scale)")
     s1.add_argument("--num-workers", type=int, default=2, help="lerobot-train data workers")
     s1.add_argument("--threads", type=int, default=1, help="math threads of each process")
