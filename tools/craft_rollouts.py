@@ -12,7 +12,7 @@ import torch
 from tqdm import tqdm
 
 from envs.craft.batch import CraftBatch
-from envs.craft.world import N_ACTIONS
+from envs.craft.lerobot_env import action_indices
 from lerobot.utils.constants import OBS_STATE
 from policies.ocn import OCNPolicy
 
@@ -24,12 +24,16 @@ def _observation(obs: np.ndarray, task: str, preprocessor: Processor) -> dict[st
     return preprocessor({OBS_STATE: torch.from_numpy(obs).float(), "task": [task] * obs.shape[0]})
 
 
-def _action_indices(action: torch.Tensor) -> np.ndarray:
-    """Float action indices [B, 1] -> int array [B], checked against the action set."""
-    index = action.reshape(-1).round().long().cpu().numpy()
-    if index.min() < 0 or index.max() >= N_ACTIONS:
-        raise ValueError(f"The policy produced actions outside [0, {N_ACTIONS}): {sorted(set(index.tolist()))}.")
-    return index
+def _fresh_maps(task: str, episodes: int, mode: str, seed: int) -> tuple[CraftBatch, np.ndarray]:
+    """`episodes` envs of one task on the maps of seeds seed, seed+1, ...; returns them and their states."""
+    craft = CraftBatch(episodes, mode=mode, reward="sparse")
+    return craft, craft.reset(seeds=range(seed, seed + episodes), tasks=[task] * episodes)
+
+
+def _step(craft: CraftBatch, action: torch.Tensor) -> np.ndarray:
+    """Step every env with the policy's (float) action indices; returns the new states."""
+    obs, *_ = craft.step(action_indices(action.cpu().numpy()))
+    return obs
 
 
 @torch.no_grad()
@@ -45,12 +49,11 @@ def free_run_success(
     """Success rate per task of the whole policy over `episodes` fresh maps each (seeds seed, seed+1, ...)."""
     rates = {}
     for task in tqdm(tasks, desc="free run", leave=False):
-        craft = CraftBatch(episodes, mode=mode, reward="sparse")
-        obs = craft.reset(seeds=range(seed, seed + episodes), tasks=[task] * episodes)
+        craft, obs = _fresh_maps(task, episodes, mode, seed)
         policy.reset()
         while not craft.done.all():
             action = postprocessor(policy.select_action(_observation(obs, task, preprocessor)))
-            obs, *_ = craft.step(_action_indices(action))
+            obs = _step(craft, action)
         rates[task] = float((craft.progress == craft.task_len).mean())
     policy.reset()
     return rates
@@ -73,8 +76,7 @@ def option_subtask_success(
     table = np.zeros((policy.config.n_options, len(subtasks)))
     for j, subtask in enumerate(tqdm(subtasks, desc="option x subtask", leave=False)):
         for i in range(policy.config.n_options):
-            craft = CraftBatch(episodes, mode=mode, reward="sparse")
-            obs = craft.reset(seeds=range(seed, seed + episodes), tasks=[subtask] * episodes)
+            craft, obs = _fresh_maps(subtask, episodes, mode, seed)
             option = torch.full((episodes,), i, dtype=torch.long)
             stopped = np.zeros(episodes, dtype=bool)
             option_h, first = None, True
@@ -85,6 +87,6 @@ def option_subtask_success(
                 if not first:
                     stopped |= (end.cpu().numpy() > 0.5) & ~craft.done
                 first = False
-                obs, *_ = craft.step(_action_indices(postprocessor(action)))
+                obs = _step(craft, postprocessor(action))
             table[i, j] = float(((craft.progress == 1) & ~stopped).mean())
     return table

@@ -21,22 +21,27 @@ from envs.craft.world import ACTION_NAMES, N_ACTIONS, default_max_steps
 STATE_KEY = "agent_pos"
 
 
-def action_index(action: Any) -> int:
-    """The Craft action index held by one policy action (a float row of width 1, or a scalar).
+def action_indices(actions: Any) -> np.ndarray:
+    """Craft action indices (int64) held by policy actions, one per element.
 
-    Policies emit floats, so an integral float is accepted; anything else would silently turn
+    Policies emit floats, so integral floats are accepted; anything else would silently turn
     into a different move if truncated, hence the error.
     """
-    values = np.asarray(action, dtype=np.float64).reshape(-1)
-    if values.size != 1:
-        raise ValueError(f"Craft takes one action index per step, got an action of shape {np.shape(action)}.")
-    value = float(values[0])
-    if not (np.isfinite(value) and value.is_integer() and 0 <= value < N_ACTIONS):
+    values = np.asarray(actions, dtype=np.float64).reshape(-1)
+    valid = np.isfinite(values) & (values == np.round(values)) & (values >= 0) & (values < N_ACTIONS)
+    if not valid.all():
         raise ValueError(
             f"Craft actions are integer indices in [0, {N_ACTIONS - 1}] "
-            f"({', '.join(ACTION_NAMES)}); got {value!r}."
+            f"({', '.join(ACTION_NAMES)}); got {float(values[~valid][0])!r}."
         )
-    return int(value)
+    return values.astype(np.int64)
+
+
+def action_index(action: Any) -> int:
+    """The Craft action index held by one policy action (a float row of width 1, or a scalar)."""
+    if np.size(action) != 1:
+        raise ValueError(f"Craft takes one action index per step, got an action of shape {np.shape(action)}.")
+    return int(action_indices(action)[0])
 
 
 class LeRobotCraftEnv(gym.Wrapper):
