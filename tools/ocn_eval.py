@@ -30,7 +30,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, required=True, help="JSON file to write; the PNG goes beside it")
     parser.add_argument("--max-episodes", type=int, default=None, help="parse at most this many split episodes")
     parser.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per table cell")
-    parser.add_argument("--seed", type=int, default=100_000, help="first env seed (away from recording seeds)")
+    parser.add_argument("--seed", type=int, default=100_000,
+                        help="first env seed (away from recording seeds); also seeds the policy's sampling")
     parser.add_argument("--batch-size", type=int, default=1024, help="episodes per parsing batch")
     parser.add_argument("--device", default="cpu")
     return parser.parse_args(argv)
@@ -114,6 +115,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     preprocessor, postprocessor = make_pre_post_processors(
         policy.config, pretrained_path=str(args.policy), preprocessor_overrides={"device_processor": {"device": args.device}}
     )
+    torch.manual_seed(args.seed)  # the policy samples its actions: same seed, same rollouts
     started = time.perf_counter()
     episodes = load_episodes(args.root, split_episodes(args.root, args.split), args.max_episodes)
     unknown = sorted(set(episodes.tasks) - set(policy.config.tasks))
