@@ -83,13 +83,16 @@ def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -
     run_dir = args.workdir / "imitation_s1" / _slug(variant.name) / f"seed{seed}"
     checkpoint = run_dir / "train" / "checkpoints" / "last" / "pretrained_model"
     record_path = run_dir / "record.json"
+    command = train_command(args, data, run_dir / "train", variant, seed)
+    shown = " ".join(command[:4] + ["--dataset.episodes=[<train split>]"] + command[5:])
+    _check_reusable(run_dir, shown)
     if record_path.exists():
         return json.loads(record_path.read_text())
-    command = train_command(args, data, run_dir / "train", variant, seed)
     train_s = None
     if not checkpoint.exists():
         print(f"training {variant.name}, seed {seed}", flush=True)
         run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "train_command.txt").write_text(shown + "\n")
         started = time.perf_counter()
         with open(run_dir / "train.log", "w") as log:
             subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT, env=_train_env(args))
@@ -110,11 +113,32 @@ def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -
         "seed": seed,
         "train_wall_s": None if train_s is None else round(train_s, 1),
         "eval_wall_s": round(time.perf_counter() - started, 1),
-        "train_command": " ".join(command[:4] + ["--dataset.episodes=[<train split>]"] + command[5:]),
+        "train_command": shown,
         "scores": scores,
     }
     record_path.write_text(json.dumps(record, indent=2) + "\n")
     return record
+
+
+def _check_reusable(run_dir: Path, command: str) -> None:
+    """Refuse to reuse a run that was trained by another command (other steps, seed, overrides...)."""
+    record_path, command_path = run_dir / "record.json", run_dir / "train_command.txt"
+    if record_path.exists():
+        before = json.loads(record_path.read_text())["train_command"]
+    elif command_path.exists():
+        before = command_path.read_text().strip()
+    else:
+        return
+    if _settings(before) != _settings(command):
+        raise SystemExit(
+            f"{run_dir} holds a run trained with other settings:\n  {before}\nwhile this reproduction "
+            f"would run:\n  {command}\nMove that folder away or pass another --workdir."
+        )
+
+
+def _settings(command: str) -> list[str]:
+    """A training command without its paths (program, data root, output dir), which may move."""
+    return [word for word in command.split()[1:] if not word.startswith(("--dataset.root=", "--output_dir="))]
 
 
 def _train_env(args: argparse.Namespace) -> dict[str, str]:
@@ -197,8 +221,9 @@ def markdown(result: dict[str, Any]) -> str:
         f"{result['date']}. Training: `lerobot-train`, {result['settings']['steps']} steps of "
         f"{result['settings']['batch_size']} windows (episodes), controller learning-rate scale "
         f"{result['settings']['controller_lr_scale']}; scores: `ocn-eval` on the validation split "
-        f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Total wall time "
-        f"{result['wall_s'] / 60:.0f} min.",
+        f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Runs finished: "
+        f"{result['runs_finished']} of {result['runs_planned']}; wall time of this invocation "
+        f"{result['wall_s'] / 60:.0f} min (runs finished before it were reused; each run's training time is below).",
         "",
         "## Must-show checks",
         "",
@@ -226,25 +251,39 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def imitation_s1(args: argparse.Namespace) -> int:
+    """Every planned run in turn; the results files are rewritten after each one, so a reproduction
+    stopped part-way leaves results for the runs it finished (the files say how many)."""
     started = time.perf_counter()
     data = args.workdir / "craft_s1"
     record_s1(data, args.episodes_per_task, args.data_seed)
-    records = []
-    for variant in VARIANTS:
-        if not variant.main and args.ablation_seeds == 0:
-            continue
-        seeds = range(1, 1 + (args.seeds if variant.main else args.ablation_seeds))
-        records += [run_one(args, data, variant, seed) for seed in seeds]
+    planned = [
+        (variant, seed)
+        for variant in VARIANTS
+        if variant.main or args.ablation_seeds > 0
+        for seed in range(1, 1 + (args.seeds if variant.main else args.ablation_seeds))
+    ]
+    records: list[dict[str, Any]] = []
+    for variant, seed in planned:
+        records.append(run_one(args, data, variant, seed))
+        result = write_results(args, records, len(planned), time.perf_counter() - started)
+    print(markdown(result))
+    return 0
+
+
+def write_results(args: argparse.Namespace, records: list[dict[str, Any]], planned: int, wall_s: float) -> dict[str, Any]:
+    """`results/imitation_s1.{json,md,png}` (and the option table) from the runs finished so far."""
     summary = summarise(records)
     result = {
         "command": "ocn-reproduce " + " ".join(sys.argv[1:] if args.argv is None else args.argv),
         "date": time.strftime("%Y-%m-%d"),
         "machine": machine(),
         "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k not in ("func", "argv")},
+        "runs_finished": len(records),
+        "runs_planned": planned,
         "summary": summary,
         "must_show": must_show(summary),
         "runs": records,
-        "wall_s": round(time.perf_counter() - started, 1),
+        "wall_s": round(wall_s, 1),
     }
     args.results.mkdir(parents=True, exist_ok=True)
     (args.results / "imitation_s1.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -253,8 +292,7 @@ def imitation_s1(args: argparse.Namespace) -> int:
     first = args.workdir / "imitation_s1" / _slug(VARIANTS[0].name) / "seed1" / "eval.png"
     if first.exists():
         (args.results / "imitation_s1_option_table.png").write_bytes(first.read_bytes())
-    print(markdown(result))
-    return 0
+    return result
 
 
 def main(argv: list[str] | None = None) -> int:
