@@ -4,7 +4,7 @@ All episodes of a task run as one `CraftBatch`, so the policy sees one batch per
 through the policy's own pre/post-processors, as under `lerobot-eval`.
 """
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -15,8 +15,7 @@ from envs.craft.batch import CraftBatch
 from envs.craft.lerobot_env import action_indices
 from lerobot.utils.constants import OBS_STATE
 from policies.ocn import OCNPolicy
-
-Processor = Callable[[Any], Any]
+from tools.episode_parsing import Processor
 
 
 def _observation(obs: np.ndarray, task: str, preprocessor: Processor) -> dict[str, Any]:

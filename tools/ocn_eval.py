@@ -53,27 +53,6 @@ def _subtask_letters(tasks: list[str], mode: str) -> list[str]:
     return [SUBTASK_LETTERS[s] for s in used]
 
 
-def parse_episodes(policy: Any, preprocessor: Any, episodes: Any, batch_size: int) -> list[np.ndarray]:
-    """Per episode, the chosen option (argmax p^c) at each real step."""
-    import torch
-
-    from lerobot.utils.constants import ACTION, OBS_STATE
-
-    options = []
-    for start in range(0, len(episodes.tasks), batch_size):
-        rows = slice(start, start + batch_size)
-        batch = {
-            OBS_STATE: torch.from_numpy(episodes.state[rows]).float(),
-            ACTION: torch.from_numpy(episodes.action[rows]).float(),
-            f"{ACTION}_is_pad": torch.from_numpy(~episodes.mask[rows]),
-            "task": episodes.tasks[rows],
-        }
-        parsed = policy.parse(preprocessor(batch))
-        chosen = parsed["option"].cpu().numpy()
-        options.extend(chosen[i, :length] for i, length in enumerate(episodes.lengths[rows]))
-    return options
-
-
 def plot_option_table(table: np.ndarray, subtasks: list[str], path: Path, title: str) -> None:
     """Heat map of option x subtask success rates, values printed in the cells."""
     import matplotlib
@@ -98,31 +77,19 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     """Everything `ocn-eval` reports, as the JSON it writes."""
     import torch
 
-    from lerobot.policies.factory import make_pre_post_processors
     from ocn_data.episodes_table import load_episodes, split_episodes
-    from policies.ocn import OCNPolicy
     from tools.craft_rollouts import free_run_success, option_subtask_success
+    from tools.episode_parsing import load_ocn, parse_episodes
     from tools.parsing_metrics import boundaries_from_labels, parsing_scores
 
-    if not (args.policy / "config.json").exists():
-        raise FileNotFoundError(f"{args.policy} holds no config.json: pass a checkpoint's pretrained_model folder.")
+    policy, preprocessor, postprocessor = load_ocn(args.policy, args.device)
     info = json.loads((args.root / "meta" / "info.json").read_text())
     if info.get("robot_type") not in (None, "craft"):
         raise ValueError(f"ocn-eval runs Craft datasets; {args.root} has robot_type {info.get('robot_type')!r}.")
-    policy = OCNPolicy.from_pretrained(args.policy)
-    policy.config.device = args.device
-    policy.to(args.device).eval()
-    preprocessor, postprocessor = make_pre_post_processors(
-        policy.config, pretrained_path=str(args.policy), preprocessor_overrides={"device_processor": {"device": args.device}}
-    )
     torch.manual_seed(args.seed)  # the policy samples its actions: same seed, same rollouts
     started = time.perf_counter()
     episodes = load_episodes(args.root, split_episodes(args.root, args.split), args.max_episodes)
-    unknown = sorted(set(episodes.tasks) - set(policy.config.tasks))
-    if unknown:
-        raise ValueError(f"The dataset has tasks {unknown} that the policy was not trained on ({policy.config.tasks}).")
-    with torch.no_grad():
-        options = parse_episodes(policy, preprocessor, episodes, args.batch_size)
+    options = [parse.option for parse in parse_episodes(policy, preprocessor, episodes, args.batch_size)]
     segments = [episodes.subtask_index[i, :n] for i, n in enumerate(episodes.lengths)]
     subtasks = [episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)]
     scores = parsing_scores(segments, subtasks, [boundaries_from_labels(o) for o in options], options)
