@@ -1,10 +1,13 @@
-"""Demonstrations as an MCAP log: one JSON message per step on each of four JSON-schema channels.
+"""MCAP logs of JSON messages, and demonstrations written as one.
 
-Channels: `/observation` (the named state vector), `/action`, `/reward` (reward and done) and
-`/subtask` (the ground-truth subtask being worked on and whether this step completes it). Every
-message carries its episode and frame index. Episodes are laid end to end on the log clock at
-the dataset's fps, so Foxglove plays them back as one timeline. The state's element names are
-stored once, as the MCAP metadata record `observation.state`.
+`JsonMcapLog` is the shared part: JSON-schema channels, one message per topic per frame, episodes
+laid end to end on the log clock at the dataset's fps so Foxglove plays them back as one timeline.
+Policy runs (`tools/rollout_mcap.py`) use it too.
+
+Demonstration channels: `/observation` (the named state vector), `/action`, `/reward` (reward and
+done) and `/subtask` (the ground-truth subtask being worked on and whether this step completes
+it). Every message carries its episode and frame index. The state's element names are stored
+once, as the MCAP metadata record `observation.state`.
 """
 
 from __future__ import annotations
@@ -19,32 +22,64 @@ from ocn_data.episodes import EpisodeChunk
 STEP_KEYS = {"episode_index": {"type": "integer"}, "frame_index": {"type": "integer"}}
 
 
-def _schema(title: str, properties: dict) -> bytes:
+def step_schema(title: str, properties: dict) -> bytes:
+    """JSON schema of a per-step message: the episode and frame index plus `properties`."""
     return json.dumps(
         {"title": title, "type": "object", "properties": {**STEP_KEYS, **properties}}
     ).encode()
 
 
-class DemoMcapWriter:
-    """Stream chunks of episodes into an MCAP file; `close()` writes the summary and index."""
+def number_array() -> dict:
+    return {"type": "array", "items": {"type": "number"}}
 
-    def __init__(self, path: str | Path, fps: int, state_names: list[str]) -> None:
+
+class JsonMcapLog:
+    """An MCAP file of JSON messages on JSON-schema channels, with episodes laid end to end on the
+    log clock (one frame = 1/fps s). The file must not exist: logs are never overwritten."""
+
+    def __init__(self, path: str | Path, fps: int, channels: dict[str, bytes], library: str) -> None:
         self.path = Path(path)
+        if self.path.exists():
+            raise FileExistsError(f"{self.path} already exists; MCAP logs are never overwritten")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("wb")
         self._writer = Writer(self._file, compression=CompressionType.ZSTD)
-        self._writer.start(profile="", library="ocn record_demos")
+        self._writer.start(profile="", library=library)
         self._ns_per_frame = int(1e9 / fps)
         self._frame = 0
-        self._writer.add_metadata("observation.state", {"names": json.dumps(list(state_names))})
+        self._channels = {}
+        for topic, schema in channels.items():
+            schema_id = self._writer.register_schema(name=topic.strip("/"), encoding="jsonschema", data=schema)
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding="json", schema_id=schema_id
+            )
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        self._writer.add_metadata(name, data)
+
+    def put_frame(self, messages: dict[str, dict]) -> None:
+        """One frame: a message per topic, all stamped with the frame's time; the clock then advances."""
+        stamp = self._frame * self._ns_per_frame
+        for topic, message in messages.items():
+            self._writer.add_message(
+                channel_id=self._channels[topic], log_time=stamp, publish_time=stamp, data=json.dumps(message).encode()
+            )
+        self._frame += 1
+
+    def close(self) -> None:
+        self._writer.finish()
+        self._file.close()
+
+
+class DemoMcapWriter(JsonMcapLog):
+    """Stream chunks of episodes into an MCAP file; `close()` writes the summary and index."""
+
+    def __init__(self, path: str | Path, fps: int, state_names: list[str]) -> None:
         channels = {
-            "/observation": _schema(
-                "Observation",
-                {"state": {"type": "array", "items": {"type": "number"}}},
-            ),
-            "/action": _schema("Action", {"action": {"type": "array", "items": {"type": "number"}}}),
-            "/reward": _schema("Reward", {"reward": {"type": "number"}, "done": {"type": "boolean"}}),
-            "/subtask": _schema(
+            "/observation": step_schema("Observation", {"state": number_array()}),
+            "/action": step_schema("Action", {"action": number_array()}),
+            "/reward": step_schema("Reward", {"reward": {"type": "number"}, "done": {"type": "boolean"}}),
+            "/subtask": step_schema(
                 "Subtask",
                 {
                     "task": {"type": "string"},
@@ -54,12 +89,8 @@ class DemoMcapWriter:
                 },
             ),
         }
-        self._channels = {}
-        for topic, schema in channels.items():
-            schema_id = self._writer.register_schema(name=topic.strip("/"), encoding="jsonschema", data=schema)
-            self._channels[topic] = self._writer.register_channel(
-                topic=topic, message_encoding="json", schema_id=schema_id
-            )
+        super().__init__(path, fps, channels, library="ocn record_demos")
+        self.add_metadata("observation.state", {"names": json.dumps(list(state_names))})
 
     def write(self, chunk: EpisodeChunk, first_episode_index: int) -> None:
         """Log every step of the chunk; `first_episode_index` is the chunk's first dataset episode."""
@@ -75,36 +106,25 @@ class DemoMcapWriter:
             names = [name for _, name in segments]
             for frame in range(int(length)):
                 step = {"episode_index": episode, "frame_index": frame}
-                stamp = self._frame * self._ns_per_frame
-                self._put("/observation", stamp, {**step, "state": state[row]})
-                self._put("/action", stamp, {**step, "action": action[row]})
-                self._put("/reward", stamp, {**step, "reward": reward[row], "done": done[row]})
-                self._put(
-                    "/subtask",
-                    stamp,
+                self.put_frame(
                     {
-                        **step,
-                        "task": task,
-                        "subtask_index": sub_index[row],
-                        "subtask": names[sub_index[row]],
-                        "subtask_end": sub_end[row],
-                    },
+                        "/observation": {**step, "state": state[row]},
+                        "/action": {**step, "action": action[row]},
+                        "/reward": {**step, "reward": reward[row], "done": done[row]},
+                        "/subtask": {
+                            **step,
+                            "task": task,
+                            "subtask_index": sub_index[row],
+                            "subtask": names[sub_index[row]],
+                            "subtask_end": sub_end[row],
+                        },
+                    }
                 )
                 row += 1
-                self._frame += 1
-
-    def _put(self, topic: str, stamp: int, message: dict) -> None:
-        self._writer.add_message(
-            channel_id=self._channels[topic], log_time=stamp, publish_time=stamp, data=json.dumps(message).encode()
-        )
-
-    def close(self) -> None:
-        self._writer.finish()
-        self._file.close()
 
 
 def read_mcap_messages(path: str | Path) -> dict[str, list[dict]]:
-    """Every message of a demo MCAP, decoded, grouped by topic (for tests and quick inspection)."""
+    """Every message of one of our MCAP logs, decoded, grouped by topic (for tests and quick inspection)."""
     from mcap.reader import make_reader
 
     out: dict[str, list[dict]] = {}

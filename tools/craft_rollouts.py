@@ -16,6 +16,7 @@ from envs.craft.lerobot_env import action_indices
 from lerobot.utils.constants import OBS_STATE
 from policies.ocn import OCNPolicy
 from tools.episode_parsing import Processor
+from tools.rollout_mcap import RolloutMcapWriter, RolloutTrace
 
 
 def _observation(obs: np.ndarray, task: str, preprocessor: Processor) -> dict[str, Any]:
@@ -29,10 +30,10 @@ def _fresh_maps(task: str, episodes: int, mode: str, seed: int) -> tuple[CraftBa
     return craft, craft.reset(seeds=range(seed, seed + episodes), tasks=[task] * episodes)
 
 
-def _step(craft: CraftBatch, action: torch.Tensor) -> np.ndarray:
-    """Step every env with the policy's (float) action indices; returns the new states."""
-    obs, *_ = craft.step(action_indices(action.cpu().numpy()))
-    return obs
+def _step(craft: CraftBatch, action: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Step every env with the policy's (float) action indices; returns the new states and rewards."""
+    obs, reward, *_ = craft.step(action_indices(action.cpu().numpy()))
+    return obs, reward
 
 
 @torch.no_grad()
@@ -44,16 +45,29 @@ def free_run_success(
     episodes: int,
     mode: str = "paper",
     seed: int = 0,
+    log: RolloutMcapWriter | None = None,
 ) -> dict[str, float]:
-    """Success rate per task of the whole policy over `episodes` fresh maps each (seeds seed, seed+1, ...)."""
+    """Success rate per task of the whole policy over `episodes` fresh maps each (seeds seed, seed+1, ...);
+    with `log`, every step (and the policy's p^c, option and termination) also goes to that MCAP."""
     rates = {}
     for task in tqdm(tasks, desc="free run", leave=False):
         craft, obs = _fresh_maps(task, episodes, mode, seed)
+        trace = RolloutTrace()
         policy.reset()
         while not craft.done.all():
+            active = ~craft.done
             action = postprocessor(policy.select_action(_observation(obs, task, preprocessor)))
-            obs = _step(craft, action)
-        rates[task] = float((craft.progress == craft.task_len).mean())
+            if log is not None:
+                step = policy.last_step
+                trace.add(active=active, state=obs, action=action.cpu().numpy(), p_c=step.p_c.cpu().numpy(),
+                          option=step.option.cpu().numpy(), end=step.end.cpu().numpy())
+            obs, reward = _step(craft, action)
+            if log is not None:
+                trace.add(reward=reward, done=craft.done.copy())
+        success = craft.progress == craft.task_len
+        if log is not None:
+            log.write(task, trace, success)
+        rates[task] = float(success.mean())
     policy.reset()
     return rates
 
@@ -86,6 +100,6 @@ def option_subtask_success(
                 if not first:
                     stopped |= (end.cpu().numpy() > 0.5) & ~craft.done
                 first = False
-                obs = _step(craft, postprocessor(action))
+                obs, _ = _step(craft, postprocessor(action))
             table[i, j] = float(((craft.progress == 1) & ~stopped).mean())
     return table

@@ -34,15 +34,18 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="first env seed (away from recording seeds); also seeds the policy's sampling")
     parser.add_argument("--batch-size", type=int, default=1024, help="episodes per parsing batch")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--mcap", type=Path, default=None,
+                        help="also log every free-run step (state, action, p^c, option, termination, reward) to "
+                             "this MCAP file, which must not exist")
     return parser.parse_args(argv)
 
 
 def _recording_settings(root: Path) -> dict[str, Any]:
     """Env mode of the dataset from record_demos' provenance file (paper mode if absent)."""
-    path = root / "meta" / "ocn_recording.json"
-    if not path.exists():
-        return {"mode": "paper"}
-    return json.loads(path.read_text())["sessions"][-1]
+    from ocn_data.provenance import load_provenance
+
+    sessions = load_provenance(root)["sessions"]
+    return sessions[-1] if sessions else {"mode": "paper"}
 
 
 def _subtask_letters(tasks: list[str], mode: str) -> list[str]:
@@ -82,6 +85,8 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from tools.episode_parsing import load_ocn, parse_episodes
     from tools.parsing_metrics import boundaries_from_labels, parsing_scores
 
+    if args.mcap is not None and args.mcap.exists():
+        raise FileExistsError(f"--mcap {args.mcap} already exists; MCAP logs are never overwritten")
     policy, preprocessor, postprocessor = load_ocn(args.policy, args.device)
     info = json.loads((args.root / "meta" / "info.json").read_text())
     if info.get("robot_type") not in (None, "craft"):
@@ -98,7 +103,17 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     tasks = sorted(set(episodes.tasks), key=policy.config.tasks.index)
     letters = _subtask_letters(tasks, mode)
     table = option_subtask_success(policy, preprocessor, postprocessor, letters, args.rollouts, mode, args.seed)
-    success = free_run_success(policy, preprocessor, postprocessor, tasks, args.rollouts, mode, args.seed)
+    log = None
+    if args.mcap is not None:
+        from envs.craft.observation import OBS_NAMES
+        from tools.rollout_mcap import RolloutMcapWriter
+
+        log = RolloutMcapWriter(args.mcap, info["fps"], list(OBS_NAMES), str(args.policy))
+    try:
+        success = free_run_success(policy, preprocessor, postprocessor, tasks, args.rollouts, mode, args.seed, log)
+    finally:
+        if log is not None:
+            log.close()
     return {
         **scores,
         "option_subtask_success": {
@@ -122,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     args = _parse_args(argv)
     try:
         result = evaluate(args)
-    except (FileNotFoundError, ValueError) as error:
+    except (FileNotFoundError, FileExistsError, ValueError) as error:
         print(f"ocn-eval: {error}", file=sys.stderr)
         return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)
