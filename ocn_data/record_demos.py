@@ -8,7 +8,6 @@ for evaluation only (columns `subtask.*` and LeRobot `language_persistent` subta
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 from datetime import UTC, datetime
@@ -16,15 +15,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING, INVENTORY, OBS_DIM
 from envs.craft.render import TILE
-from envs.craft.world import GRID_SIZE, MODES, REWARDS, parse_task, task_code, task_description
+from envs.craft.world import GRID_SIZE, MODES, REWARDS, parse_task, task_description
 from ocn_data.craft_recorder import FPS, CraftRecorder, craft_features
-from ocn_data.datacard import write_card
+from ocn_data.datacard import dataset_card
 from ocn_data.lerobot_writer import ColumnarDatasetWriter, DatasetExistsError
 from ocn_data.mcap_log import DemoMcapWriter
-
-PROVENANCE = "meta/ocn_recording.json"
+from ocn_data.provenance import load_provenance, write_provenance
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,47 +65,9 @@ def _parse_tasks(spec: str, mode: str) -> list[tuple[int, ...]]:
     return tasks
 
 
-def _observation_layout() -> list[dict]:
-    return [
-        {"start": CELLS.start, "stop": CELLS.stop, "meaning": "interior cell kinds (8 x 8, row-major; 0 empty, 1 boundary, 2 water, 3 stone, 4 toolshed, 5 workbench, 6 factory, 7 iron, 8 grass, 9 wood, 10 gold, 11 gem, 12-20 crafted items)"},
-        {"start": AGENT_ROW, "stop": AGENT_ROW + 1, "meaning": "agent row (interior coordinates 0-7)"},
-        {"start": AGENT_COL, "stop": AGENT_COL + 1, "meaning": "agent column (interior coordinates 0-7)"},
-        {"start": FACING, "stop": FACING + 1, "meaning": "facing (0 down, 1 up, 2 left, 3 right)"},
-        {"start": INVENTORY.start, "stop": INVENTORY.stop, "meaning": "inventory counts of kinds 7-20 (iron ... ladder)"},
-    ]
-
-
-def _load_provenance(root: Path) -> dict:
-    path = root / PROVENANCE
-    return json.loads(path.read_text()) if path.is_file() else {"sessions": []}
-
-
-def _write_card_and_provenance(root: Path, writer: ColumnarDatasetWriter, provenance: dict, args, image_shape) -> None:
-    (root / PROVENANCE).write_text(json.dumps(provenance, indent=2))
-    info = writer.meta.info
-    write_card(
-        root,
-        "craft",
-        {
-            "repo_id": writer.meta.repo_id,
-            "mode": args.mode,
-            "reward": args.reward,
-            "fps": info.fps,
-            "total_episodes": info.total_episodes,
-            "total_frames": info.total_frames,
-            "splits": {"train": info.splits.get("train", "0:0"), "val": info.splits.get("val")},
-            "image_shape": image_shape,
-            "tasks": [
-                {"description": t, "code": task_code(parse_task(t, args.mode)), "episodes": n}
-                for t, n in writer.task_counts.items()
-            ],
-            "obs_dim": OBS_DIM,
-            "obs_layout": _observation_layout(),
-            "failures": sum(s["expert_failures"] for s in provenance["sessions"]),
-            "seed": ", ".join(str(s["seed"]) for s in provenance["sessions"]),
-            "commands": [s["command"] for s in provenance["sessions"]],
-        },
-    )
+def _write_card_and_provenance(root: Path, repo_id: str, provenance: dict) -> None:
+    write_provenance(root, provenance)
+    (root / "README.md").write_text(dataset_card(root, repo_id))
 
 
 def record(args: argparse.Namespace) -> int:
@@ -118,7 +77,7 @@ def record(args: argparse.Namespace) -> int:
         raise ValueError(f"--episodes-per-task must be >= 1, got {args.episodes_per_task}")
     if args.mcap is not None and args.mcap.exists():
         raise FileExistsError(f"--mcap {args.mcap} already exists; MCAP logs are never overwritten")
-    provenance = _load_provenance(args.root) if args.resume else {"sessions": []}
+    provenance = load_provenance(args.root) if args.resume else {"sessions": []}
     if args.resume and provenance["sessions"] and provenance["sessions"][-1]["mode"] != args.mode:
         raise ValueError(f"--resume: the dataset was recorded in mode {provenance['sessions'][-1]['mode']!r}")
     video = args.video
@@ -180,7 +139,7 @@ def record(args: argparse.Namespace) -> int:
             "interrupted": interrupted,
         }
         provenance["sessions"].append(session)
-        _write_card_and_provenance(args.root, writer, provenance, args, image_shape)
+        _write_card_and_provenance(args.root, writer.meta.repo_id, provenance)
     recorded = writer.total_episodes - start_episodes
     print(
         f"{'interrupted: ' if interrupted else ''}recorded {recorded} episodes "
