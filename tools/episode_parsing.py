@@ -18,6 +18,7 @@ import torch
 from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import EpisodeArrays
 from policies.ocn import OCNPolicy
+from tools.parsing_metrics import segment_starts
 
 Processor = Callable[[Any], Any]
 
@@ -34,7 +35,7 @@ class EpisodeParse:
     @property
     def switches(self) -> np.ndarray:
         """Steps t >= 1 (0-based) where the chosen option differs from the step before."""
-        return np.flatnonzero(self.option[1:] != self.option[:-1]) + 1
+        return segment_starts(self.option)[1:]
 
 
 def load_ocn(path: Path, device: str = "cpu") -> tuple[OCNPolicy, Processor, Processor]:

@@ -22,6 +22,11 @@ def boundaries_from_labels(labels: Sequence[int] | np.ndarray) -> np.ndarray:
     return np.append(changes, labels.size - 1).astype(np.int64)
 
 
+def segment_starts(labels: Sequence[int] | np.ndarray) -> np.ndarray:
+    """First step of each maximal run of equal labels: 0, then the step after each inner boundary."""
+    return np.append(0, boundaries_from_labels(labels)[:-1] + 1).astype(np.int64)
+
+
 def _hits(source: np.ndarray, target: np.ndarray, tolerance: int) -> int:
     """How many of `source` have some element of `target` within `tolerance` steps."""
     if source.size == 0 or target.size == 0:
@@ -62,7 +67,7 @@ def task_alignment_accuracy(
     correct = total = 0
     for labels, predicted in zip(true_labels, predicted_boundaries, strict=True):
         labels = np.asarray(labels)
-        subtasks = labels[np.append(0, boundaries_from_labels(labels)[:-1] + 1)]
+        subtasks = labels[segment_starts(labels)]
         segment = _segment_index(np.asarray(predicted), labels.size)
         in_range = segment < subtasks.size
         matched = np.where(in_range, subtasks[np.minimum(segment, subtasks.size - 1)], -1)
