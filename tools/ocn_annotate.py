@@ -1,0 +1,201 @@
+"""`ocn-annotate`: write a trained OCN's discovered segmentation into a copy of a LeRobot dataset.
+
+The policy parses every episode (the chosen option, argmax p^c, per step); each maximal run of the
+same option becomes one LeRobot subtask annotation, in the native `language_persistent` column
+(role "assistant", style "subtask", the segment's name, its start time), with an empty
+`language_events` list per frame. Segments are named "option k", or with `--name-by subtask` by the
+ground-truth subtask that the option overlaps most over the whole dataset. The input dataset is
+never modified: the annotated dataset is a new copy with its own card and `meta/ocn_annotation.json`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import shutil
+import sys
+import tempfile
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from tools.parsing_metrics import segment_starts
+
+NAME_BY = ("option", "subtask")
+LABELS = ("subtask.index", "subtask.id")
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="ocn-annotate", description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("--policy", type=Path, required=True, help="a pretrained_model folder of an ocn checkpoint")
+    parser.add_argument("--root", type=Path, required=True, help="the LeRobot dataset to annotate (left unchanged)")
+    parser.add_argument("--repo-id", required=True, help="repo id of the annotated dataset, ORG/NAME (for its card)")
+    parser.add_argument("--out-root", type=Path, required=True, help="folder of the annotated copy; must not exist")
+    parser.add_argument("--name-by", choices=NAME_BY, default="option",
+                        help="name segments 'option k', or by the ground-truth subtask each option overlaps most")
+    parser.add_argument("--batch-size", type=int, default=1024, help="episodes per parsing batch")
+    parser.add_argument("--device", default="cpu")
+    return parser.parse_args(argv)
+
+
+def check_paths(root: Path, out_root: Path) -> None:
+    """Refuse before any parsing: no dataset at root, an existing out-root, an out-root inside root,
+    or a dataset without the ground-truth columns that episodes are read with."""
+    info_path = root / "meta" / "info.json"
+    if not info_path.is_file():
+        raise FileNotFoundError(f"{root} is not a LeRobot dataset (no meta/info.json).")
+    if out_root.exists():
+        raise FileExistsError(
+            f"--out-root {out_root} already exists; ocn-annotate writes a new dataset, choose a new folder."
+        )
+    if out_root.resolve().is_relative_to(root.resolve()):
+        raise ValueError(f"--out-root {out_root} lies inside the dataset {root}; choose a folder outside it.")
+    info = json.loads(info_path.read_text())
+    missing = [key for key in LABELS if key not in info["features"]]
+    if missing:
+        raise ValueError(
+            f"{root} has no {'/'.join(missing)} columns; ocn-annotate reads episodes through "
+            "ocn_data.episodes_table, which needs the ground-truth subtask columns that record_demos writes."
+        )
+
+
+def option_names(options: list[np.ndarray], subtasks: list[np.ndarray], name_by: str) -> dict[int, dict]:
+    """Per chosen option: its segment name, frames and segments, and by subtask the share of its
+    frames on the subtask it is named after.
+
+    By subtask, each option is matched to the ground-truth subtask it overlaps most over all frames,
+    as parsing_metrics' alignment reads a parse (several options may share a subtask, a subtask may
+    get no option); ties go to the lower subtask id.
+    """
+    from envs.craft.world import SUBTASK_NAMES
+
+    option, subtask = np.concatenate(options), np.concatenate(subtasks)
+    first = np.concatenate([o[segment_starts(o)] for o in options])
+    names = {}
+    for k in (int(k) for k in np.unique(option)):
+        chosen = option == k
+        entry = {"frames": int(chosen.sum()), "segments": int((first == k).sum())}
+        if name_by == "option":
+            names[k] = {"name": f"option {k}", **entry}
+            continue
+        overlap = np.bincount(subtask[chosen], minlength=len(SUBTASK_NAMES))
+        best = int(overlap.argmax())
+        names[k] = {"name": SUBTASK_NAMES[best], **entry, "agreement": float(overlap[best] / entry["frames"])}
+    return names
+
+
+def segments_of(option: np.ndarray, names: dict[int, dict]) -> list[tuple[int, str]]:
+    """(start frame, name) of each maximal run of the same option in one episode."""
+    return [(int(s), names[int(option[s])]["name"]) for s in segment_starts(option)]
+
+
+def parse_dataset(policy_path: Path, root: Path, name_by: str, batch_size: int, device: str) -> tuple[dict, dict]:
+    """The policy's segments of every episode of the dataset, by episode index, and the option names."""
+    from ocn_data.episodes_table import load_episodes, split_episodes
+    from tools.episode_parsing import load_ocn, parse_episodes
+
+    policy, preprocessor, _ = load_ocn(policy_path, device)
+    episodes = load_episodes(root, split_episodes(root, "all"))
+    options = [parse.option for parse in parse_episodes(policy, preprocessor, episodes, batch_size)]
+    subtasks = [episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)]
+    names = option_names(options, subtasks, name_by)
+    segments = {int(e): segments_of(o, names) for e, o in zip(episodes.episode_index, options, strict=True)}
+    return segments, names
+
+
+def rewrite_data_file(path: Path, segments: dict[int, list[tuple[int, str]]], fps: int, schema: pa.Schema) -> None:
+    """Replace (or add) the two language columns of one data file, in the column order of `schema`.
+
+    Episodes are contiguous in a LeRobot data file, so one segment list per run of `episode_index`
+    spans all of that episode's frames.
+    """
+    import pyarrow.parquet as pq
+    from lerobot.datasets.io_utils import write_table_one_row_group_per_episode
+    from lerobot.datasets.language import LANGUAGE_EVENTS, LANGUAGE_PERSISTENT
+
+    from ocn_data.language_rows import empty_events_column, persistent_column
+
+    table = pq.read_table(path)
+    episode = table["episode_index"].to_numpy()
+    starts = segment_starts(episode)
+    lengths = np.diff(np.append(starts, episode.size))
+    in_file = [segments[int(e)] for e in episode[starts]]
+    language = {
+        LANGUAGE_PERSISTENT: persistent_column(in_file, lengths, fps),
+        LANGUAGE_EVENTS: empty_events_column(episode.size),
+    }
+    arrays = [language[field.name] if field.name in language else table[field.name] for field in schema]
+    tmp = path.with_suffix(".parquet.tmp")
+    write_table_one_row_group_per_episode(pa.Table.from_arrays(arrays, schema=schema), tmp)
+    tmp.replace(path)
+
+
+def write_annotated(root: Path, out_root: Path, segments: dict, annotation: dict, repo_id: str) -> None:
+    """Copy the dataset into a scratch folder beside out_root, annotate it there, then move it into place,
+    so a failure leaves no half-written dataset at out_root."""
+    from lerobot.datasets.feature_utils import get_hf_features_from_features
+    from lerobot.datasets.io_utils import load_info, write_info
+    from lerobot.datasets.language import language_feature_info
+
+    from ocn_data.datacard import ANNOTATION, dataset_card
+
+    out_root.parent.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(prefix=f".{out_root.name}.", dir=out_root.parent))
+    try:
+        work = scratch / "dataset"
+        shutil.copytree(root, work)
+        info = load_info(work)
+        info.features = {**info.features, **language_feature_info()}
+        write_info(info, work)
+        schema = get_hf_features_from_features(
+            {k: ft for k, ft in info.features.items() if ft["dtype"] != "video"}
+        ).arrow_schema
+        for path in sorted((work / "data").glob("*/*.parquet")):
+            rewrite_data_file(path, segments, info.fps, schema)
+        (work / ANNOTATION).write_text(json.dumps(annotation, indent=2) + "\n")
+        (work / "README.md").write_text(dataset_card(work, repo_id))
+        work.rename(out_root)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def annotate(args: argparse.Namespace) -> dict[str, Any]:
+    """Parse, then write the annotated copy; returns the annotation record it stores."""
+    check_paths(args.root, args.out_root)
+    segments, names = parse_dataset(args.policy, args.root, args.name_by, args.batch_size, args.device)
+    annotation = {
+        "command": args.command,
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "policy": str(args.policy),
+        "source_root": str(args.root),
+        "name_by": args.name_by,
+        "episodes": len(segments),
+        "segments": sum(len(s) for s in segments.values()),
+        "options": [{"option": k, **v} for k, v in sorted(names.items())],
+    }
+    write_annotated(args.root, args.out_root, segments, annotation, args.repo_id)
+    return annotation
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    args.command = shlex.join(["ocn-annotate", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        annotation = annotate(args)
+    except (FileNotFoundError, FileExistsError, ValueError) as error:
+        print(f"ocn-annotate: {error}", file=sys.stderr)
+        return 2
+    named = ", ".join(f"option {o['option']} -> {o['name']!r}" for o in annotation["options"])
+    print(f"wrote {annotation['segments']} segments over {annotation['episodes']} episodes ({named}) "
+          f"into {args.out_root}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
