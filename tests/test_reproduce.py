@@ -31,3 +31,8 @@ def test_unfinished_run_is_checked_by_its_command_file(tmp_path):
     with pytest.raises(SystemExit, match="--steps=250"):
         _check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=5000))
     _check_reusable(tmp_path / "empty", COMMAND.format(root="/data", steps=5000))
+
+
+def test_reuse_ignores_how_often_a_run_logs_and_saves(tmp_path):
+    _write_record(tmp_path / "run", COMMAND.format(root="/data", steps=5000) + " --save_freq=5000 --log_freq=50")
+    _check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=5000) + " --save_freq=1000 --log_freq=10")

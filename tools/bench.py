@@ -7,7 +7,11 @@
 `ocn-bench train` measures OCN training: real (unpadded) frames per second through a real
 `lerobot-train` run on the S1 data, the same model's update alone, LeRobot's windowed
 `__getitem__`, the stacked option cells against a per-option Python loop, and `select_action`
-latency. Results carry the machine they ran on.
+latency.
+
+`ocn-bench view` times `ocn-view` writing an .rrd of 50 validation episodes with a trained
+checkpoint, as a whole subprocess (interpreter start and imports included) and as the logging
+alone that it reports. Results carry the machine they ran on.
 """
 
 from __future__ import annotations
@@ -304,6 +308,43 @@ def _train_markdown(r: dict) -> str:
     )
 
 
+def run_view_bench(args: argparse.Namespace) -> None:
+    """Whole `ocn-view --save` subprocesses, best of `--repeats`, and the .rrd written."""
+    with tempfile.TemporaryDirectory() as tmp:
+        rrd = Path(tmp) / "view.rrd"
+        command = [console_script("ocn-view"), "--root", args.root, "--repo-id", args.repo_id, "--split", "val",
+                   "--episodes", str(args.episodes), "--policy", args.policy, "--save", str(rrd)]
+        walls, outputs = [], []
+        for _ in range(args.repeats):
+            rrd.unlink(missing_ok=True)
+            start = time.perf_counter()
+            outputs.append(subprocess.run(command, check=True, capture_output=True, text=True).stdout)
+            walls.append(time.perf_counter() - start)
+        size = rrd.stat().st_size
+    logged = outputs[int(np.argmin(walls))].strip().splitlines()[-1]
+    result = {
+        "benchmark": "ocn-bench view",
+        "machine": machine(),
+        "note": args.note,
+        "command": " ".join(["ocn-view", *command[1:-1], "FILE.rrd"]),
+        "wall_s": min(walls),
+        "all_wall_s": walls,
+        "ocn_view_says": logged,
+        "rrd_bytes": size,
+    }
+    m = result["machine"]
+    conditions = f"Conditions: {args.note}\n\n" if args.note else ""
+    markdown = (
+        "# ocn-view speed\n\n"
+        f"Command: `ocn-bench view`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}.\n\n"
+        f"{conditions}"
+        f"`{result['command']}` as a whole subprocess: **{result['wall_s']:.1f} s** (best of {args.repeats}; "
+        f"goal: under 30 s), writing a {size / 1e6:.1f} MB .rrd. Its own report of the logging alone: "
+        f"\"{logged}\".\n"
+    )
+    _write(result, Path(args.out), markdown)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="ocn-bench", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
@@ -322,6 +363,16 @@ def main(argv: list[str] | None = None) -> None:
     train.add_argument("--out", default=str(RESULTS / "bench_train.json"))
     train.add_argument("--note", default="", help="conditions of the run, stored with the results")
     train.set_defaults(func=run_train_bench)
+    view = sub.add_parser("view", help="ocn-view writing an .rrd of 50 episodes with a trained checkpoint")
+    view.add_argument("--root", default="outputs/reproduce/craft_s1", help="a recorded Craft dataset")
+    view.add_argument("--repo-id", default="local/craft_s1")
+    view.add_argument("--policy", default="outputs/reproduce/imitation_s1/3options_T10/seed1/train/checkpoints/last/"
+                      "pretrained_model", help="a trained ocn checkpoint (from ocn-reproduce imitation-s1)")
+    view.add_argument("--episodes", type=int, default=50, help="validation episodes to log")
+    view.add_argument("--repeats", type=int, default=3)
+    view.add_argument("--out", default=str(RESULTS / "bench_view.json"))
+    view.add_argument("--note", default="", help="conditions of the run, stored with the results")
+    view.set_defaults(func=run_view_bench)
     args = parser.parse_args(argv)
     args.func(args)
 

@@ -2,9 +2,9 @@
 
 Records a little Craft data with the expert (AC, CD, DA), reads it back with LeRobot, trains OCN
 briefly with `lerobot-train --policy.type=ocn`, scores it with `ocn-eval` (parsing metrics, option x
-subtask table, free-run success) and writes a rerun viewer file of one episode with LeRobot's own
-dataset viewer. A brief run shows the loop working, not the paper's figures: those come from
-`ocn-reproduce imitation-s1`.
+subtask table, free-run success, the free runs logged to MCAP) and draws the model's options over
+20 validation episodes with `ocn-view` (a rerun .rrd file and a PNG). A brief run shows the loop
+working, not the paper's figures: those come from `ocn-reproduce imitation-s1`.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     shutil.rmtree(args.workdir, ignore_errors=True)
-    root, mcap, viewer = args.workdir / "craft_demo", args.workdir / "craft_demo.mcap", args.workdir / "viewer"
+    root, mcap = args.workdir / "craft_demo", args.workdir / "craft_demo.mcap"
     repo_id = "local/craft_quickstart"
     print(f"[1/5] recording {3 * args.episodes_per_task} expert episodes into {root}", flush=True)
     subprocess.run(
@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
         mine = lengths[[t == task for t in tasks]]
         print(f"  {task!r}: {len(mine)} episodes, mean length {mine.mean():.1f} steps")
 
-    train_dir, eval_json = args.workdir / "train", args.workdir / "eval.json"
+    train_dir, eval_json, runs = args.workdir / "train", args.workdir / "eval.json", args.workdir / "policy_runs.mcap"
     print(f"[3/5] training OCN for {args.train_steps} steps with lerobot-train into {train_dir}", flush=True)
     subprocess.run(
         [console_script("lerobot-train"), "--policy.type=ocn", f"--dataset.repo_id={repo_id}", f"--dataset.root={root}",
@@ -71,22 +71,20 @@ def main(argv: list[str] | None = None) -> int:
     print(f"[4/5] evaluating {checkpoint} with ocn-eval", flush=True)
     subprocess.run(
         [console_script("ocn-eval"), "--policy", str(checkpoint), "--root", str(root), "--repo-id", repo_id,
-         "--out", str(eval_json), "--rollouts", "20"],
+         "--out", str(eval_json), "--rollouts", "20", "--mcap", str(runs)],
         check=True,
     )
 
-    print(f"[5/5] writing a rerun viewer file of episode 0 into {viewer}", flush=True)
+    rrd, png = args.workdir / "viewer.rrd", args.workdir / "segmentation.png"
+    print(f"[5/5] writing the rerun viewer file {rrd} and the segmentation plot {png} with ocn-view", flush=True)
     subprocess.run(
-        [console_script("lerobot-dataset-viz"), "--repo-id", repo_id, "--root", str(root),
-         "--episode-index", "0", "--mode", "local", "--save", "1", "--output-dir", str(viewer)],
+        [console_script("ocn-view"), "--root", str(root), "--repo-id", repo_id, "--policy", str(checkpoint),
+         "--episodes", "20", "--save", str(rrd), "--png", str(png)],
         check=True,
-        capture_output=True,
     )
-    rrd = sorted(viewer.glob("*.rrd"))
-    if not rrd:
-        raise SystemExit(f"ocn-quickstart: lerobot-dataset-viz wrote no .rrd file into {viewer}")
-    print(f"done: dataset {root}, MCAP log {mcap}, checkpoint {checkpoint}, scores {eval_json}, "
-          f"option table {eval_json.with_suffix('.png')}, viewer file {rrd[0]} (open it with `rerun {rrd[0]}`)")
+    print(f"done: dataset {root}, MCAP logs {mcap} (demos) and {runs} (policy runs), checkpoint {checkpoint}, "
+          f"scores {eval_json}, option table {eval_json.with_suffix('.png')}, segmentation {png}, "
+          f"viewer file {rrd} (open it with `rerun {rrd}`)")
     return 0
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -26,6 +27,7 @@ from tools import console_script
 from tools.bench import RESULTS, machine
 
 S1_TASKS = "AC,CD,DA"
+SAVE_EVERY = 1000  # lerobot-train checkpoints this often, so a stopped run resumes from its last one
 METRICS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "diagonal_mean", "off_diagonal_max", "mean_success_rate")
 
 
@@ -71,7 +73,7 @@ def train_command(args: argparse.Namespace, data: Path, out: Path, variant: Vari
         console_script("lerobot-train"), "--policy.type=ocn", "--dataset.repo_id=local/craft_s1", f"--dataset.root={data}",
         f"--dataset.episodes=[{','.join(map(str, train))}]", "--policy.device=cpu", "--policy.push_to_hub=false",
         "--wandb.enable=false", "--env_eval_freq=0", f"--steps={args.steps}", f"--batch_size={args.batch_size}",
-        f"--num_workers={args.num_workers}", f"--save_freq={args.steps}", "--log_freq=50", f"--seed={seed}",
+        f"--num_workers={args.num_workers}", f"--save_freq={min(args.steps, SAVE_EVERY)}", "--log_freq=50", f"--seed={seed}",
         f"--policy.window_size={args.window_size}", f"--policy.controller_lr_scale={args.controller_lr_scale}",
         f"--output_dir={out}",
     ]
@@ -88,15 +90,7 @@ def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -
     _check_reusable(run_dir, shown)
     if record_path.exists():
         return json.loads(record_path.read_text())
-    train_s = None
-    if not checkpoint.exists():
-        print(f"training {variant.name}, seed {seed}", flush=True)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "train_command.txt").write_text(shown + "\n")
-        started = time.perf_counter()
-        with open(run_dir / "train.log", "w") as log:
-            subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT, env=_train_env(args))
-        train_s = time.perf_counter() - started
+    train_s = train(args, command, shown, run_dir)
     eval_json = run_dir / "eval.json"
     started = time.perf_counter()
     subprocess.run(
@@ -111,13 +105,48 @@ def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -
     record = {
         "variant": variant.name,
         "seed": seed,
-        "train_wall_s": None if train_s is None else round(train_s, 1),
+        "train_wall_s": train_s,
         "eval_wall_s": round(time.perf_counter() - started, 1),
         "train_command": shown,
         "scores": scores,
     }
     record_path.write_text(json.dumps(record, indent=2) + "\n")
     return record
+
+
+def _trained_steps(train_dir: Path) -> int:
+    """The step of the run's latest lerobot-train checkpoint (0 if it has none)."""
+    path = train_dir / "checkpoints" / "last" / "training_state" / "training_step.json"
+    return json.loads(path.read_text())["step"] if path.exists() else 0
+
+
+def train(args: argparse.Namespace, command: list[str], shown: str, run_dir: Path) -> float | None:
+    """Run lerobot-train until the run has all its steps: from scratch, or resumed from the last
+    checkpoint of a stopped run (a run folder with no checkpoint yet starts over). Returns the wall
+    seconds of every training invocation of this run added up (None if an earlier reproduction
+    trained it all)."""
+    train_dir, times_path = run_dir / "train", run_dir / "train_wall_s.json"
+    done = _trained_steps(train_dir)
+    if done >= args.steps:
+        return json.loads(times_path.read_text())["total"] if times_path.exists() else None
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "train_command.txt").write_text(shown + "\n")
+    if done == 0:
+        shutil.rmtree(train_dir, ignore_errors=True)
+        print(f"training {run_dir}", flush=True)
+    else:
+        config = train_dir / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+        command = [command[0], f"--config_path={config}", "--resume=true"]
+        print(f"resuming {run_dir} from step {done}", flush=True)
+    times = json.loads(times_path.read_text()) if times_path.exists() else {"invocations": [], "total": 0.0}
+    started = time.perf_counter()
+    with open(run_dir / "train.log", "a") as log:
+        subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT, env=_train_env(args))
+    wall = round(time.perf_counter() - started, 1)
+    times["invocations"].append({"from_step": done, "wall_s": wall})
+    times["total"] = round(times["total"] + wall, 1)
+    times_path.write_text(json.dumps(times, indent=2) + "\n")
+    return times["total"]
 
 
 def _check_reusable(run_dir: Path, command: str) -> None:
@@ -137,8 +166,10 @@ def _check_reusable(run_dir: Path, command: str) -> None:
 
 
 def _settings(command: str) -> list[str]:
-    """A training command without its paths (program, data root, output dir), which may move."""
-    return [word for word in command.split()[1:] if not word.startswith(("--dataset.root=", "--output_dir="))]
+    """A training command without what does not change the trained model: its paths (program, data
+    root, output dir), which may move, and how often it logs and saves."""
+    ignored = ("--dataset.root=", "--output_dir=", "--save_freq=", "--log_freq=")
+    return [word for word in command.split()[1:] if not word.startswith(ignored)]
 
 
 def _train_env(args: argparse.Namespace) -> dict[str, str]:
