@@ -13,6 +13,7 @@ OBS_ENCODERS = ("craft", "identity")
 ACTION_TYPES = ("discrete", "continuous")
 WINDOW_STARTS = ("episode", "any")
 INFERENCE_MODES = ("sample", "greedy")
+EXECUTIONS = ("soft", "hard")
 
 
 def _check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
@@ -60,6 +61,12 @@ class OCNConfig(PreTrainedConfig):
     tasks: list[str] = field(default_factory=list)
 
     inference_mode: str = "sample"
+    # How `select_action` runs the hierarchy. "soft": the differentiable eq. 17 mixture that training
+    # uses. "hard": the option-level semantics of the RL phase (appendix A.1): the controller samples
+    # one option, which acts alone until its sampled termination fires, then the controller (whose
+    # state advances only at these decisions) samples the next one, which restarts from h^o_0.
+    # `forward` and `parse` are the soft recurrence in both cases.
+    execution: str = "soft"
 
     optimizer_lr: float = 1e-3
     # The controller's learning rate is optimizer_lr * controller_lr_scale. The paper slows the
@@ -77,6 +84,7 @@ class OCNConfig(PreTrainedConfig):
         _check_choice("action_type", self.action_type, ACTION_TYPES)
         _check_choice("window_start", self.window_start, WINDOW_STARTS)
         _check_choice("inference_mode", self.inference_mode, INFERENCE_MODES)
+        _check_choice("execution", self.execution, EXECUTIONS)
         if self.n_options < 1 or self.mlp_depth < 1 or self.window_size < 1:
             raise ValueError("n_options, mlp_depth and window_size must all be >= 1.")
         if self.controller_lr_scale <= 0:

@@ -19,18 +19,24 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
 from .heads import make_action_head, mixture_log_prob
-from .recurrence import OCNCore, OCNState, StepOutput
+from .recurrence import HardState, OCNCore, OCNState, StepOutput
 
 PAD_KEYS = (f"{ACTION}_is_pad", f"{OBS_STATE}_is_pad")
 
 
 @dataclass
 class StepReport:
-    """Readout of the latest `select_action` step: p^c [B, N], option = argmax p^c [B], e_t [B]."""
+    """Readout of the latest `select_action` step: p^c [B, N], option = argmax p^c [B], e_t [B].
+
+    Under hard execution: p^c of the latest decision, the running (sampled) option, the previous
+    option's termination probability e_{i,t} (1 at t = 1), and `decided` [B], the rows where the
+    controller chose this step (None under soft execution, where it chooses softly every step).
+    """
 
     p_c: Tensor
     option: Tensor
     end: Tensor
+    decided: Tensor | None = None
 
 
 def tasks_from_meta(dataset_meta: Any) -> list[str]:
@@ -130,7 +136,7 @@ class OCNPolicy(PreTrainedPolicy):
 
     def reset(self) -> None:
         """Forget the recurrent state: the next `select_action` is t = 1 of new episodes."""
-        self._state: OCNState | None = None
+        self._state: OCNState | HardState | None = None
         self.last_step: StepReport | None = None
 
     def task_index(self, tasks: Sequence[str] | str | None, batch_size: int) -> Tensor:
@@ -210,20 +216,35 @@ class OCNPolicy(PreTrainedPolicy):
             result["action_log_prob"] = self._action_log_prob(out, batch[ACTION])
         return result
 
-    @torch.no_grad()
-    def predict_action_chunk(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
-        """Advance every env's recurrence by one step and return its action as a chunk [B, 1, A]."""
-        state = batch[OBS_STATE]
-        size = state.shape[0]
+    def _episode_starts(self, batch: dict[str, Any]) -> Tensor:
+        """Rows [B] starting an episode this step (all of them right after `reset()`), creating the
+        state of the configured execution then; a batch-size or execution change needs a reset."""
+        size = batch[OBS_STATE].shape[0]
+        hard = self.config.execution == "hard"
         start = self._state is None
         if start:
-            self._state = self.core.initial_state(self.task_index(batch.get("task"), size))
+            task_index = self.task_index(batch.get("task"), size)
+            self._state = self.core.initial_hard_state(task_index) if hard else self.core.initial_state(task_index)
+        elif isinstance(self._state, HardState) != hard:
+            raise ValueError("The execution mode changed without reset().")
         elif self._state.p_c.shape[0] != size:
             raise ValueError(f"Batch size changed from {self._state.p_c.shape[0]} to {size} without reset().")
-        starts = torch.full((size,), start, dtype=torch.bool, device=state.device)
-        self._state, out = self.core.step(self._state, self.core.project(self.encoder(state)), starts)
-        self.last_step = StepReport(out.p_c, out.p_c.argmax(-1), out.end)
+        return torch.full((size,), start, dtype=torch.bool, device=batch[OBS_STATE].device)
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
+        """Advance every env's recurrence by one step and return its action as a chunk [B, 1, A]:
+        the soft eq. 17 step, or under hard execution one sampled-hierarchy step (`OCNCore.hard_step`)."""
+        starts = self._episode_starts(batch)
+        projected = self.core.project(self.encoder(batch[OBS_STATE]))
         greedy = self.config.inference_mode == "greedy"
+        if self.config.execution == "hard":
+            self._state, out = self.core.hard_step(self._state, projected, starts, greedy)
+            self.last_step = StepReport(self._state.p_c, self._state.option, out.end, out.decided)
+            weights = torch.ones(starts.shape[0], 1, dtype=out.params.dtype, device=starts.device)
+            return self.head.choose(weights, out.params.unsqueeze(0), greedy).unsqueeze(1)
+        self._state, out = self.core.step(self._state, projected, starts)
+        self.last_step = StepReport(out.p_c, out.p_c.argmax(-1), out.end)
         return self.head.choose(out.weights, out.params, greedy).unsqueeze(1)
 
     @torch.no_grad()

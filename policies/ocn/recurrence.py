@@ -5,6 +5,10 @@ the controller keeps its state and p^c_{t-1}) and "done" (the controller steps, 
 from their learned initial states), and mixes them with e_t = sum_i p^c_{t-1,i} e_{i,t} (eq. 12).
 Step t = 1 (eq. 8-10) is the "done" branch alone, which is what a step with e_t forced to 1 gives,
 so episode starts are a per-row `start` flag rather than a separate code path.
+
+`hard_step` is the sampled counterpart used by the RL phase (appendix A.1) and by hard execution:
+one option runs at a time, and the controller only steps where that option's sampled termination
+fires (and at t = 1).
 """
 
 from dataclasses import dataclass
@@ -36,6 +40,27 @@ class StepOutput(NamedTuple):
     p_c: Tensor
     end: Tensor
     option_end: Tensor
+
+
+@dataclass
+class HardState:
+    """Sampled hierarchy after a step: h^c [B, d_hid] (it advances only at decisions), p^c [B, N] of
+    the latest decision, the running option [B] (long) and the option states h^o [N, B, d_hid]."""
+
+    controller_h: Tensor
+    p_c: Tensor
+    option: Tensor
+    option_h: Tensor
+
+
+class HardStepOutput(NamedTuple):
+    """What a hard step emits: `params` [B, n_params] (the running option's output head), `decided`
+    [B] (the controller chose an option this step: t = 1 or a fired termination), `end` [B] (e_{i,t}
+    of the option that was running before this step; 1 at starts)."""
+
+    params: Tensor
+    decided: Tensor
+    end: Tensor
 
 
 class Projected(NamedTuple):
@@ -82,6 +107,47 @@ class OCNCore(nn.Module):
         uniform = torch.full((batch, self.n_options), 1.0 / self.n_options, device=task_index.device)
         option_h = self.option_init.unsqueeze(1).expand(-1, batch, -1)
         return OCNState(self.controller_init[task_index], uniform, option_h)
+
+    def initial_hard_state(self, task_index: Tensor) -> HardState:
+        """Hard state before t = 1: h^c_{tau,0} per row's task; the option fields are unused (e_1 = 1)."""
+        soft = self.initial_state(task_index)
+        option = torch.zeros(task_index.shape[0], dtype=torch.long, device=task_index.device)
+        return HardState(soft.controller_h, soft.p_c, option, soft.option_h)
+
+    def decide(self, x_controller: Tensor, controller_h: Tensor) -> tuple[Tensor, Tensor]:
+        """One controller step from projected observations [1, B, d_mlp] and h^c [B, d_hid]:
+        tempered logits (log p^c up to a constant) [B, N] and the new h^c [B, d_hid]."""
+        out = self.controller.step(x_controller, controller_h.unsqueeze(0))
+        return out.logits[0] / self.temperature, out.hidden[0]
+
+    def hard_step(
+        self, state: HardState, x: Projected, start: Tensor, greedy: bool
+    ) -> tuple[HardState, HardStepOutput]:
+        """One step of the sampled hierarchy; `start` [B] marks t = 1 (the controller always chooses).
+
+        Sampling draws e ~ Bernoulli(e_{i,t}) and i ~ p^c; `greedy` fires at e_{i,t} > 0.5 and takes
+        argmax p^c instead. Every row's branches are computed and selected with `torch.where`, so a
+        step costs the same whichever rows decide.
+        """
+        rows = torch.arange(start.shape[0], device=start.device)
+        continued = self.options.step(x.options, state.option_h)
+        end = torch.where(start, 1.0, continued.end[state.option, rows])
+        fired = end > 0.5 if greedy else torch.bernoulli(end).bool()
+        decided = start | fired
+        logits, controller_h = self.decide(x.controller, state.controller_h)
+        p_c = torch.softmax(logits, dim=-1)
+        choice = p_c.argmax(-1) if greedy else torch.multinomial(p_c, 1).squeeze(-1)
+        restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
+        option = torch.where(decided, choice, state.option)
+        gate = decided[None, :, None]
+        option_params = torch.where(gate, restarted.logits, continued.logits)
+        next_state = HardState(
+            controller_h=torch.where(decided[:, None], controller_h, state.controller_h),
+            p_c=torch.where(decided[:, None], p_c, state.p_c),
+            option=option,
+            option_h=torch.where(gate, restarted.hidden, continued.hidden),
+        )
+        return next_state, HardStepOutput(option_params[option, rows], decided, end)
 
     def project(self, x: Tensor) -> Projected:
         """Observation parts for x [..., B, obs_dim], computed once per window outside the time loop."""

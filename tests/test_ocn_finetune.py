@@ -1,0 +1,206 @@
+"""`ocn-finetune`: option pools, the finetuned checkpoint as LeRobot loads it, and bad input."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from envs.craft.batch import CraftBatch
+from envs.craft.world import parse_task, task_description
+from lerobot.utils.constants import OBS_STATE
+from policies.ocn import OCNPolicy
+from tools.episode_parsing import load_ocn
+from tools.ocn_finetune import main, merge_option_pools, save_checkpoint
+
+torch.set_num_threads(1)
+
+ADC = task_description(parse_task("ADC"))
+CAD = task_description(parse_task("CAD"))
+
+
+def variant(path: Path, seed: int, **changes) -> OCNPolicy:
+    """A policy like the checkpoint at `path` with `changes` to its config and fresh weights drawn from `seed`."""
+    source, _, _ = load_ocn(path)
+    torch.manual_seed(seed)
+    return OCNPolicy(dataclasses.replace(source.config, pretrained_path=None, **changes)).eval()
+
+
+def save_variant(base: Path, path: Path, seed: int, **changes) -> Path:
+    """`variant` saved as a checkpoint folder with the base checkpoint's processors."""
+    _, preprocessor, postprocessor = load_ocn(base)
+    save_checkpoint(variant(base, seed, **changes), preprocessor, postprocessor, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def second_checkpoint(ocn_checkpoint, tmp_path_factory) -> Path:
+    """A compatible checkpoint with 2 options of its own (S2's second model)."""
+    return save_variant(ocn_checkpoint, tmp_path_factory.mktemp("second") / "pretrained_model", seed=7, n_options=2)
+
+
+@pytest.fixture(scope="module")
+def finetuned(ocn_checkpoint, second_checkpoint, tmp_path_factory) -> Path:
+    """ocn-finetune on two new tasks over the pooled options of both checkpoints (3 + 2 options)."""
+    out = tmp_path_factory.mktemp("finetune") / "run"
+    args = ["--checkpoint", str(ocn_checkpoint), "--checkpoint", str(second_checkpoint), "--tasks", "ADC,CAD",
+            "--reward", "dense", "--frames", "1500", "--envs", "8", "--max-steps", "30", "--seed", "1",
+            "--batch-size", "32", "--out", str(out)]
+    assert main(args) == 0
+    return out
+
+
+def test_merged_pool_options_act_exactly_as_in_their_own_models(ocn_checkpoint):
+    first, _, _ = load_ocn(ocn_checkpoint)
+    second = variant(ocn_checkpoint, seed=11, n_options=2)
+    pool = merge_option_pools([first, second], [ADC])
+    assert pool.config.n_options == 5 and pool.config.execution == "hard" and pool.config.tasks == [ADC]
+    obs = CraftBatch(6).reset(seeds=range(6), tasks=["ADC"] * 6)
+    x = pool.encoder(torch.from_numpy(obs))
+    h = torch.randn(5, 6, pool.config.hidden_size)
+    with torch.no_grad():
+        pooled = pool.core.options(x, h)
+        own = [first.core.options(x, h[:3]), second.core.options(x, h[3:])]
+    for field in ("logits", "hidden", "end"):
+        expected = torch.cat([getattr(out, field) for out in own])
+        torch.testing.assert_close(getattr(pooled, field), expected, rtol=1e-6, atol=1e-6, msg=field)
+    torch.testing.assert_close(pool.core.option_init, torch.cat([first.core.option_init, second.core.option_init]))
+    assert pool.core.controller.n_out == 5 and pool.core.controller_init.shape == (1, pool.config.hidden_size)
+
+
+def test_pooled_option_runs_alone_like_its_source(ocn_checkpoint):
+    """The same option, run alone from its initial state for a few steps, chooses the same greedy
+    actions and reports the same terminations in the pool as in its own model."""
+    first, _, _ = load_ocn(ocn_checkpoint)
+    second = variant(ocn_checkpoint, seed=11, n_options=2)
+    pool = merge_option_pools([first, second], [ADC])
+    craft = CraftBatch(4)
+    obs = craft.reset(seeds=range(4), tasks=["ADC"] * 4)
+    source_h = pool_h = None
+    restart = torch.ones(4, dtype=torch.bool)
+    for _ in range(5):
+        state = torch.from_numpy(obs).float()
+        action, source_h, end = second.act_with_options(state, torch.full((4,), 1), source_h, restart, greedy=True)
+        pool_action, pool_h, pool_end = pool.act_with_options(state, torch.full((4,), 4), pool_h, restart, greedy=True)
+        assert torch.equal(action, pool_action)
+        torch.testing.assert_close(end, pool_end, rtol=1e-6, atol=1e-6)
+        restart = torch.zeros(4, dtype=torch.bool)
+        obs, *_ = craft.step(action.long().numpy().ravel())
+
+
+def test_pools_of_different_sizes_are_refused_with_the_field(ocn_checkpoint):
+    first, _, _ = load_ocn(ocn_checkpoint)
+    with pytest.raises(ValueError, match=r"hidden_size is 16 vs 8"):
+        merge_option_pools([first, variant(ocn_checkpoint, seed=1, hidden_size=8)], [ADC])
+
+
+def test_finetune_writes_the_curve_and_a_checkpoint_that_keeps_the_options(finetuned, ocn_checkpoint,
+                                                                          second_checkpoint):
+    with open(finetuned / "curve.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert rows and {"frames", "mean_return", "success", "success[ADC]", "success[CAD]"} <= set(rows[0])
+    frames = [int(row["frames"]) for row in rows]
+    assert frames == sorted(frames) and frames[-1] >= 1500
+    assert all(0.0 <= float(row["success"]) <= 1.0 for row in rows)
+    assert (finetuned / "curve.png").stat().st_size > 0
+    summary = json.loads((finetuned / "finetune.json").read_text())
+    assert summary["n_options"] == 5 and summary["tasks"] == [ADC, CAD] and summary["frames"] == frames[-1]
+
+    policy, _, _ = load_ocn(finetuned / "pretrained_model")
+    assert policy.config.execution == "hard" and policy.config.tasks == [ADC, CAD]
+    sources = [load_ocn(ocn_checkpoint)[0], load_ocn(second_checkpoint)[0]]
+    for name, param in policy.core.options.named_parameters():
+        assert torch.equal(param, torch.cat([s.core.options.get_parameter(name) for s in sources])), name
+    assert torch.equal(policy.core.option_init, torch.cat([s.core.option_init for s in sources]))
+    assert not torch.equal(policy.core.controller_init, torch.zeros_like(policy.core.controller_init))
+
+
+def test_finetuned_checkpoint_runs_in_hard_mode_through_its_processors(finetuned):
+    policy, preprocessor, postprocessor = load_ocn(finetuned / "pretrained_model")
+    craft = CraftBatch(4, max_steps=12)
+    obs = craft.reset(seeds=range(4), tasks=["ADC", "CAD", "ADC", "CAD"])
+    tasks = [ADC, CAD, ADC, CAD]
+    policy.reset()
+    decisions = 0
+    while not craft.done.all():
+        batch = preprocessor({OBS_STATE: torch.from_numpy(obs).float(), "task": tasks})
+        action = postprocessor(policy.select_action(batch))
+        decided = policy.last_step.decided
+        if decisions == 0:
+            assert decided.all()
+        decisions += int(decided.sum())
+        assert action.shape == (4, 1)
+        obs, *_ = craft.step(action.long().numpy().ravel())
+    assert decisions >= 4
+
+
+def test_finetuned_checkpoint_runs_under_lerobot_eval_rollout(finetuned):
+    """The path `lerobot-eval --policy.path=... --env.type=craft --env.task=ADC` takes, in process."""
+    from lerobot.configs import PreTrainedConfig
+    from lerobot.envs.factory import make_env, make_env_config, make_env_pre_post_processors
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+    from lerobot.scripts.lerobot_eval import rollout
+
+    path = str(finetuned / "pretrained_model")
+    env_cfg = make_env_config("craft", task="ADC", max_steps=15)
+    policy_cfg = PreTrainedConfig.from_pretrained(path)
+    policy_cfg.pretrained_path = path
+    policy = make_policy(cfg=policy_cfg, env_cfg=env_cfg).eval()
+    preprocessor, postprocessor = make_pre_post_processors(policy_cfg, pretrained_path=path)
+    env_preprocessor, env_postprocessor = make_env_pre_post_processors(env_cfg=env_cfg, policy_cfg=policy_cfg)
+    vec = make_env(env_cfg, n_envs=2)["craft"][0]
+    try:
+        out = rollout(vec, policy, env_preprocessor, env_postprocessor, preprocessor, postprocessor, seeds=[0, 1])
+    finally:
+        vec.close()
+    assert out["action"].shape[0] == 2 and out["success"].dtype == torch.bool
+    assert policy.config.execution == "hard" and policy.last_step.decided is not None
+
+
+def test_bad_input_is_one_line_and_exit_code_2(ocn_checkpoint, tmp_path, capsys):
+    incompatible = save_variant(ocn_checkpoint, tmp_path / "small" / "pretrained_model", seed=2, hidden_size=8)
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "x").write_text("x")
+    base = ["--checkpoint", str(ocn_checkpoint), "--frames", "10", "--envs", "2"]
+    cases = {
+        "unknown subtask letter": [*base, "--tasks", "AXD", "--out", str(tmp_path / "a")],
+        "no config.json": ["--checkpoint", str(tmp_path), "--tasks", "ADC", "--out", str(tmp_path / "b")],
+        "not an empty folder": [*base, "--tasks", "ADC", "--out", str(full)],
+        "envs cannot run 3 tasks": [*base, "--tasks", "ADC,CAD,DCA", "--out", str(tmp_path / "c")],
+        "hidden_size is 16 vs 8": [*base, "--checkpoint", str(incompatible), "--tasks", "ADC",
+                                   "--out", str(tmp_path / "d")],
+    }
+    for message, argv in cases.items():
+        assert main(argv) == 2, message
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1 and err.startswith("ocn-finetune: "), err
+    assert not any((tmp_path / name).exists() for name in "abcd")
+
+
+def test_help_lists_the_options(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    for option in ("--checkpoint", "--tasks", "--reward", "--frames", "--envs", "--seed", "--out"):
+        assert option in text
+
+
+def test_finetuning_is_seeded(ocn_checkpoint, tmp_path):
+    def curve(out: Path) -> list[dict]:
+        argv = ["--checkpoint", str(ocn_checkpoint), "--tasks", "ADC", "--frames", "300", "--envs", "4",
+                "--max-steps", "20", "--seed", "5", "--out", str(out)]
+        assert main(argv) == 0
+        rows = list(csv.DictReader(open(out / "curve.csv")))
+        return [{key: value for key, value in row.items() if key != "seconds"} for row in rows]
+
+    assert curve(tmp_path / "one") == curve(tmp_path / "two")
+    first, _, _ = load_ocn(tmp_path / "one" / "pretrained_model")
+    second, _, _ = load_ocn(tmp_path / "two" / "pretrained_model")
+    for (name, a), (_, b) in zip(first.state_dict().items(), second.state_dict().items(), strict=True):
+        assert torch.equal(a, b), name

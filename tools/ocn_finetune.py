@@ -1,0 +1,269 @@
+"""`ocn-finetune`: PPO finetuning of a fresh OCN controller over frozen options on new Craft tasks.
+
+The RL phase of the paper (section 3.3, appendix A.1): the options of one or more trained `ocn`
+checkpoints are pooled (S1: one checkpoint's options; S2: two checkpoints' options concatenated),
+a new controller with one initial state per new task is put over the pool, and PPO trains it in
+option space (see `tools.ppo`) while every option stays frozen. The result is an ordinary `ocn`
+checkpoint with `execution="hard"`, so `load_ocn` and `lerobot-eval --policy.path=DIR/pretrained_model`
+run the finetuned hierarchy unchanged.
+
+Writes into --out: curve.csv (one row per PPO iteration: env frames, mean return, success overall
+and per task as `success[ADC]`, PPO statistics), curve.png, finetune.json (settings and summary) and
+pretrained_model/ (config, weights and the first checkpoint's pre/post-processors).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from lerobot.configs import NormalizationMode
+from policies.ocn import OCNPolicy
+
+# Config fields that must agree for options of different checkpoints to share one encoder, one
+# action head and one stacked cell.
+POOL_FIELDS = ("obs_encoder", "action_type", "n_actions", "hidden_size", "mlp_hidden_size", "mlp_depth",
+               "log_std_min", "log_std_max")
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="ocn-finetune", description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    parser.add_argument("--checkpoint", type=Path, action="append", required=True,
+                        help="a pretrained_model folder of an ocn checkpoint; repeat to pool several option sets")
+    parser.add_argument("--tasks", required=True,
+                        help="comma-separated new tasks, as subtask letters (e.g. ADC,CAD,DCA) or named tasks")
+    parser.add_argument("--reward", choices=("sparse", "dense"), default="sparse")
+    parser.add_argument("--frames", type=int, default=500_000, help="env frames to train for")
+    parser.add_argument("--envs", type=int, default=64, help="envs stepped together; one episode each per iteration")
+    parser.add_argument("--seed", type=int, default=0, help="seeds the new controller, the sampling and the maps")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (must be new or empty)")
+    parser.add_argument("--mode", choices=("paper", "full"), default="paper", help="Craft world mode")
+    parser.add_argument("--max-steps", type=int, default=None,
+                        help="episode step limit (default: the env's, 100 for tasks of 3+ subtasks)")
+    parser.add_argument("--temperature", type=float, default=None,
+                        help="controller softmax temperature T (default: the first checkpoint's)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads; the per-step matmuls are small, and more threads than free "
+                             "cores slow them down many times over")
+    ppo = parser.add_argument_group("PPO (defaults from the paper's appendix A.2)")
+    ppo.add_argument("--lr", type=float, default=3e-4, help="initial Adam lr, decayed linearly to 0")
+    ppo.add_argument("--epochs", type=int, default=4)
+    ppo.add_argument("--batch-size", type=int, default=256, help="controller decisions per minibatch")
+    ppo.add_argument("--gamma", type=float, default=0.97)
+    ppo.add_argument("--gae-lambda", type=float, default=0.95)
+    ppo.add_argument("--clip", type=float, default=0.2)
+    ppo.add_argument("--entropy", type=float, default=1e-3, help="entropy bonus coefficient")
+    return parser.parse_args(argv)
+
+
+def task_descriptions(spec: str, mode: str) -> list[str]:
+    """Canonical task descriptions ("get wood, get grass, get iron") of a comma-separated task list:
+    the strings the Craft env hands to the policy, so the new controller states are keyed by them."""
+    from envs.craft.world import parse_task, task_description
+
+    specs = [part.strip() for part in spec.split(",") if part.strip()]
+    if not specs:
+        raise ValueError("--tasks is empty; give tasks such as ADC,CAD,DCA.")
+    tasks = [task_description(parse_task(part, mode)) for part in specs]
+    if len(set(tasks)) != len(tasks):
+        raise ValueError(f"--tasks {spec!r} names a task twice.")
+    return tasks
+
+
+def check_poolable(policies: Sequence[OCNPolicy], names: Sequence[str]) -> None:
+    """Options can only be pooled if they read the same inputs and write the same action head."""
+    first = policies[0].config
+    for policy, name in zip(policies[1:], names[1:], strict=True):
+        config = policy.config
+        for field in POOL_FIELDS:
+            if getattr(config, field) != getattr(first, field):
+                raise ValueError(
+                    f"Cannot pool the options of {names[0]} and {name}: {field} is {getattr(first, field)!r} "
+                    f"vs {getattr(config, field)!r} (pooled options must share encoder, action head and sizes)."
+                )
+        for kind in ("input_features", "output_features"):
+            shapes = {key: tuple(feature.shape) for key, feature in getattr(config, kind).items()}
+            if shapes != {key: tuple(feature.shape) for key, feature in getattr(first, kind).items()}:
+                raise ValueError(f"Cannot pool the options of {names[0]} and {name}: their {kind} differ.")
+
+
+def check_craft(policy: OCNPolicy) -> None:
+    """The PPO rollouts feed raw Craft states and take raw action indices: identity normalisation only."""
+    config = policy.config
+    if config.obs_encoder != "craft" or config.action_type != "discrete":
+        raise ValueError("ocn-finetune trains in Craft: it needs an OCN with the craft encoder and discrete actions.")
+    if any(mode is not NormalizationMode.IDENTITY for mode in config.normalization_mapping.values()):
+        raise ValueError("ocn-finetune needs identity normalisation of Craft states and actions (the craft default).")
+
+
+def merge_option_pools(
+    policies: Sequence[OCNPolicy], tasks: Sequence[str], temperature: float | None = None,
+    names: Sequence[str] | None = None,
+) -> OCNPolicy:
+    """A new hard-execution OCN whose options are those of `policies`, in order, and whose controller is
+    fresh (drawn from torch's current RNG) with one zero initial state per new task.
+
+    The stacked option weights and the options' initial states are concatenated along the module
+    axis, so option k of the pool is exactly option k - offset of its source model.
+    """
+    if not policies:
+        raise ValueError("Pool at least one checkpoint's options.")
+    names = list(names) if names is not None else [f"checkpoint {i}" for i in range(len(policies))]
+    check_poolable(policies, names)
+    changes: dict[str, Any] = {
+        "n_options": sum(policy.config.n_options for policy in policies),
+        "tasks": list(tasks),
+        "execution": "hard",
+        "inference_mode": "sample",
+        "pretrained_path": None,
+    }
+    if temperature is not None:
+        changes["temperature"] = temperature
+    pooled = OCNPolicy(dataclasses.replace(policies[0].config, **changes))
+    with torch.no_grad():
+        for name, param in pooled.core.options.named_parameters():
+            param.copy_(torch.cat([source.core.options.get_parameter(name) for source in policies]))
+        pooled.core.option_init.copy_(torch.cat([source.core.option_init for source in policies]))
+    return pooled.eval()
+
+
+def save_checkpoint(policy: OCNPolicy, preprocessor: Any, postprocessor: Any, path: Path) -> None:
+    """An `ocn` pretrained_model folder: config and weights, and the pre/post-processor pipelines."""
+    policy.save_pretrained(path)
+    preprocessor.save_pretrained(path)
+    postprocessor.save_pretrained(path)
+
+
+def plot_curve(rows: list[dict[str, Any]], labels: Sequence[str], path: Path, title: str) -> None:
+    """Success (overall and per task) and mean return against env frames."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import EngFormatter
+
+    frames = [row["frames"] for row in rows]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.6))
+    left.plot(frames, [row["success"] for row in rows], color="black", label="all tasks")
+    for label in labels:
+        left.plot(frames, [row[f"success[{label}]"] for row in rows], alpha=0.7, label=label)
+    left.set_ylim(-0.02, 1.02)
+    left.set_ylabel("success rate")
+    left.legend(fontsize=8)
+    right.plot(frames, [row["mean_return"] for row in rows], color="black")
+    right.set_ylabel("mean episode return")
+    for ax in (left, right):
+        ax.set_xlabel("env frames")
+        ax.xaxis.set_major_formatter(EngFormatter())
+        ax.grid(alpha=0.3)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    if args.frames < 1 or args.envs < 1 or args.threads < 1:
+        raise ValueError("--frames, --envs and --threads must be >= 1.")
+    if args.max_steps is not None and args.max_steps < 1:
+        raise ValueError("--max-steps must be >= 1.")
+    if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
+        raise FileExistsError(f"--out {args.out} exists and is not an empty folder; outputs are never overwritten.")
+
+
+def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
+    """Everything `ocn-finetune` does; returns the summary it writes to finetune.json."""
+    from tqdm import tqdm
+
+    from envs.craft.batch import CraftBatch
+    from envs.craft.world import parse_task, task_code
+    from tools.episode_parsing import load_ocn
+    from tools.ppo import PPOConfig, env_tasks, finetune
+
+    _check_args(args)
+    torch.set_num_threads(args.threads)
+    tasks = task_descriptions(args.tasks, args.mode)
+    env_tasks(tasks, args.envs)
+    config = PPOConfig(lr=args.lr, epochs=args.epochs, batch_size=args.batch_size, gamma=args.gamma,
+                       gae_lambda=args.gae_lambda, clip=args.clip, entropy_coef=args.entropy)
+    loaded = [load_ocn(path) for path in args.checkpoint]
+    for policy, _, _ in loaded:
+        check_craft(policy)
+    torch.manual_seed(args.seed)
+    policy = merge_option_pools([policy for policy, _, _ in loaded], tasks, args.temperature,
+                                [str(path) for path in args.checkpoint])
+    envs = CraftBatch(args.envs, mode=args.mode, reward=args.reward, max_steps=args.max_steps)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    labels = [task_code(parse_task(task, args.mode)) for task in tasks]
+    started = time.perf_counter()
+    with open(args.out / "curve.csv", "w", newline="") as handle, \
+            tqdm(total=args.frames, desc="ocn-finetune", unit="frame") as bar:
+        writer: csv.DictWriter | None = None
+
+        def record(row: dict[str, Any]) -> None:
+            nonlocal writer
+            row["seconds"] = round(time.perf_counter() - started, 2)
+            if writer is None:
+                writer = csv.DictWriter(handle, fieldnames=list(row))
+                writer.writeheader()
+            writer.writerow(row)
+            handle.flush()
+            bar.update(min(row["frames"], args.frames) - bar.n)
+            bar.set_postfix(success=f"{row['success']:.2f}", ret=f"{row['mean_return']:.2f}")
+
+        rows = finetune(policy, envs, tasks, args.frames, config, args.seed, record, labels)
+    wall = time.perf_counter() - started
+    checkpoint = args.out / "pretrained_model"
+    save_checkpoint(policy, loaded[0][1], loaded[0][2], checkpoint)
+    title = f"ocn-finetune {','.join(labels)} ({args.reward}), options of {len(loaded)} checkpoint(s), seed {args.seed}"
+    plot_curve(rows, labels, args.out / "curve.png", title)
+    summary = {
+        "checkpoints": [str(path) for path in args.checkpoint],
+        "tasks": tasks,
+        "n_options": policy.config.n_options,
+        "reward": args.reward,
+        "mode": args.mode,
+        "envs": args.envs,
+        "seed": args.seed,
+        "ppo": dataclasses.asdict(config),
+        "frames": rows[-1]["frames"],
+        "iterations": len(rows),
+        "wall_s": round(wall, 2),
+        "frames_per_s": round(rows[-1]["frames"] / wall, 1),
+        "final_success": rows[-1]["success"],
+        "final_mean_return": rows[-1]["mean_return"],
+        "pretrained_model": str(checkpoint),
+    }
+    (args.out / "finetune.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    try:
+        summary = finetune_checkpoints(args)
+    except (FileNotFoundError, FileExistsError, ValueError) as error:
+        print(f"ocn-finetune: {error}", file=sys.stderr)
+        return 2
+    print(
+        f"{summary['frames']} frames in {summary['wall_s']} s ({summary['frames_per_s']} frames/s); last iteration: "
+        f"success {summary['final_success']:.3f}, mean return {summary['final_mean_return']:.3f}"
+    )
+    print(f"wrote {args.out}/curve.csv, curve.png, finetune.json and pretrained_model/")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

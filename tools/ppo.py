@@ -1,0 +1,348 @@
+"""PPO for a fresh OCN controller over frozen options, in option space (paper 3.3 and appendix A.1).
+
+The environment is a semi-MDP whose actions are options: the controller samples an option, the
+option acts alone until its sampled termination fires (or the episode ends), and only then does
+the controller choose again. Rollouts run the policy exactly as it is deployed (`select_action`
+under `execution="hard"`), every env of one `CraftBatch` stepped together, and read the policy's
+`last_step.decided` to know where the controller chose.
+
+One PPO transition is one controller decision. Its reward is the discounted sum of the env
+rewards while its option ran, R = sum_k gamma^k r_{t+k}, and the next decision's value is
+discounted by gamma^duration (semi-MDP GAE). The controller is recurrent and its state advances
+only at decisions, so each episode is stored as its sequence of decisions (the compact state at
+the decision and the chosen option) and log-probabilities and values are recomputed over whole
+episodes, from the task's initial controller state, by `replay_controller`; episodes are short
+(at most a few dozen decisions). Old log-probabilities and values come from the same replay with
+the pre-update weights, so the PPO ratio is exactly 1 before the first gradient step.
+
+The critic is a small MLP on h^c (`ValueHead`), trained with the controller (shared h^c, value
+loss weighted by `value_coef`). It only serves training and is not part of the saved policy.
+Options, their initial states, the encoder and the action head are frozen: `requires_grad` is
+switched off and only the controller, its per-task initial states and the critic are optimised.
+An episode that reaches the step limit ends like a terminated one (no bootstrap): the limit is
+part of the task, as in evaluation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from envs.craft.batch import CraftBatch
+from envs.craft.lerobot_env import action_indices
+from lerobot.utils.constants import OBS_STATE
+from policies.ocn import OCNPolicy
+
+
+@dataclass
+class PPOConfig:
+    """PPO hyperparameters; defaults from the paper's appendix A.2 (table 3) where it gives them."""
+
+    lr: float = 3e-4
+    epochs: int = 4
+    batch_size: int = 256  # controller decisions per minibatch (whole episodes, so about this many)
+    gamma: float = 0.97
+    gae_lambda: float = 0.95
+    clip: float = 0.2
+    entropy_coef: float = 1e-3
+    value_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    value_hidden: int = 64
+
+    def __post_init__(self) -> None:
+        if self.lr <= 0 or self.epochs < 1 or self.batch_size < 1:
+            raise ValueError("lr must be > 0, epochs and batch_size >= 1.")
+        if not (0 < self.gamma <= 1 and 0 <= self.gae_lambda <= 1 and self.clip > 0):
+            raise ValueError("gamma must be in (0, 1], gae_lambda in [0, 1] and clip > 0.")
+
+
+class ValueHead(nn.Module):
+    """Critic V(h^c): the controller's state after a decision -> the value of that decision point."""
+
+    def __init__(self, hidden_size: int, width: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(hidden_size, width), nn.Tanh(), nn.Linear(width, 1))
+
+    def forward(self, controller_h: Tensor) -> Tensor:
+        return self.net(controller_h).squeeze(-1)
+
+
+@dataclass
+class Decisions:
+    """One batch of finished episodes as padded decision sequences.
+
+    state [E, J, S] (compact state where the controller chose), option [E, J], reward [E, J]
+    (discounted env reward while that option ran), duration [E, J] (env steps it ran), count [E]
+    (decisions per episode; positions >= count are padding), task_index [E] (row of the policy's
+    per-task initial controller states), and per-episode totals: return_ [E] (undiscounted),
+    success [E], frames [E].
+    """
+
+    state: np.ndarray
+    option: np.ndarray
+    reward: np.ndarray
+    duration: np.ndarray
+    count: np.ndarray
+    task_index: np.ndarray
+    return_: np.ndarray
+    success: np.ndarray
+    frames: np.ndarray
+
+    @property
+    def mask(self) -> np.ndarray:
+        """Real decisions [E, J]."""
+        return np.arange(self.state.shape[1])[None, :] < self.count[:, None]
+
+
+def check_finetunable(policy: OCNPolicy) -> None:
+    """PPO needs the sampled hierarchy: hard execution with sampling, not greedy choices."""
+    if policy.config.execution != "hard" or policy.config.inference_mode != "sample":
+        raise ValueError(
+            "PPO finetuning needs execution='hard' and inference_mode='sample', got "
+            f"{policy.config.execution!r} and {policy.config.inference_mode!r}."
+        )
+
+
+@torch.no_grad()
+def collect(
+    policy: OCNPolicy, envs: CraftBatch, tasks: Sequence[str], seeds: Sequence[int], gamma: float
+) -> Decisions:
+    """Run one episode in every env (env e on map seed seeds[e], task tasks[e]) and record its decisions.
+
+    `tasks` are strings the policy knows (its `config.tasks`); the envs parse them too.
+    """
+    check_finetunable(policy)
+    n, tasks = envs.num_envs, list(tasks)
+    obs = envs.reset(seeds=list(seeds), tasks=tasks)
+    task_index = policy.task_index(tasks, n).cpu().numpy()
+    limit = int(envs.max_steps.max())
+    state = np.zeros((n, limit, obs.shape[1]), dtype=obs.dtype)
+    option = np.zeros((n, limit), dtype=np.int64)
+    reward_sum = np.zeros((n, limit))
+    duration = np.zeros((n, limit), dtype=np.int64)
+    count = np.zeros(n, dtype=np.int64)
+    age = np.zeros(n, dtype=np.int64)
+    returns = np.zeros(n)
+    policy.reset()
+    while not envs.done.all():
+        active = ~envs.done
+        action = policy.select_action({OBS_STATE: torch.from_numpy(obs).float(), "task": tasks})
+        decided = np.flatnonzero(policy.last_step.decided.cpu().numpy() & active)
+        state[decided, count[decided]] = obs[decided]
+        option[decided, count[decided]] = policy.last_step.option.cpu().numpy()[decided]
+        count[decided] += 1
+        age[decided] = 0
+        obs, reward, *_ = envs.step(action_indices(action.cpu().numpy()))
+        running = np.flatnonzero(active)
+        current = count[running] - 1
+        reward_sum[running, current] += gamma ** age[running] * reward[running]
+        duration[running, current] += 1
+        age[running] += 1
+        returns[running] += reward[running]
+    policy.reset()
+    used = max(int(count.max()), 1)
+    return Decisions(
+        state=state[:, :used],
+        option=option[:, :used],
+        reward=reward_sum[:, :used],
+        duration=duration[:, :used],
+        count=count,
+        task_index=task_index,
+        return_=returns,
+        success=envs.progress == envs.task_len,
+        frames=envs.t.copy(),
+    )
+
+
+def semi_mdp_gae(
+    reward: Tensor, duration: Tensor, value: Tensor, count: Tensor, gamma: float, lam: float
+) -> tuple[Tensor, Tensor]:
+    """Advantages and returns [E, J] of decision sequences (positions >= count[e] are padding, zero).
+
+    delta_j = R_j + gamma^d_j V_{j+1} - V_j and A_j = delta_j + gamma^d_j lambda A_{j+1}, with
+    V_{j+1} = A_{j+1} = 0 after an episode's last decision.
+    """
+    steps = reward.shape[1]
+    advantage = torch.zeros_like(reward)
+    next_value = torch.zeros_like(reward[:, 0])
+    next_advantage = torch.zeros_like(reward[:, 0])
+    for j in reversed(range(steps)):
+        real = j < count
+        discount = gamma ** duration[:, j].to(reward.dtype)
+        delta = reward[:, j] + discount * next_value - value[:, j]
+        step_advantage = torch.where(real, delta + discount * lam * next_advantage, 0.0)
+        advantage[:, j] = step_advantage
+        next_value = torch.where(real, value[:, j], 0.0)
+        next_advantage = step_advantage
+    return advantage, advantage + value * (torch.arange(steps) < count[:, None])
+
+
+def replay_controller(policy: OCNPolicy, critic: ValueHead, state: Tensor, task_index: Tensor) -> tuple[Tensor, Tensor]:
+    """Tempered controller logits [E, J, N] and values [E, J] over decision sequences state [E, J, S],
+    from each episode's task state h^c_{tau,0}: the controller recurrence of hard execution, replayed."""
+    core = policy.core
+    features = policy.encoder(state.transpose(0, 1).contiguous())
+    projected = core.controller.project(features)
+    controller_h = core.controller_init[task_index]
+    logits, values = [], []
+    for x in projected.unbind(0):
+        step_logits, controller_h = core.decide(x, controller_h)
+        logits.append(step_logits)
+        values.append(critic(controller_h))
+    return torch.stack(logits, 1), torch.stack(values, 1)
+
+
+def freeze_options(policy: OCNPolicy) -> list[nn.Parameter]:
+    """Freeze everything but the controller and its per-task initial states; return those."""
+    for param in policy.parameters():
+        param.requires_grad_(False)
+    trainable = [policy.core.controller_init, *policy.core.controller.parameters()]
+    for param in trainable:
+        param.requires_grad_(True)
+    return trainable
+
+
+class PPOTrainer:
+    """Clipped-surrogate PPO updates of the controller (and critic) from batches of `Decisions`."""
+
+    def __init__(self, policy: OCNPolicy, config: PPOConfig) -> None:
+        check_finetunable(policy)
+        self.policy = policy
+        self.config = config
+        self.critic = ValueHead(policy.config.hidden_size, config.value_hidden)
+        self.trainable = [*freeze_options(policy), *self.critic.parameters()]
+        self.optimizer = torch.optim.Adam(self.trainable, lr=config.lr, eps=1e-5)
+
+    def set_lr_fraction(self, fraction: float) -> float:
+        """Linear schedule: lr = fraction * the base lr; returns the lr now in use."""
+        lr = self.config.lr * max(fraction, 0.0)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        return lr
+
+    def update(self, batch: Decisions) -> dict[str, float]:
+        """`epochs` passes over the batch's episodes in shuffled minibatches of about `batch_size` decisions."""
+        cfg = self.config
+        state = torch.from_numpy(batch.state)
+        option = torch.from_numpy(batch.option)
+        count = torch.from_numpy(batch.count)
+        task_index = torch.from_numpy(batch.task_index)
+        mask = torch.from_numpy(batch.mask)
+        with torch.no_grad():
+            logits, value = replay_controller(self.policy, self.critic, state, task_index)
+            old_log_prob = torch.log_softmax(logits, -1).gather(-1, option.unsqueeze(-1)).squeeze(-1)
+            advantage, returns = semi_mdp_gae(
+                torch.from_numpy(batch.reward).float(), torch.from_numpy(batch.duration), value, count,
+                cfg.gamma, cfg.gae_lambda,
+            )
+        n_minibatches = min(len(batch.count), max(1, round(int(batch.count.sum()) / cfg.batch_size)))
+        totals: dict[str, float] = {}
+        for _ in range(cfg.epochs):
+            for episodes in np.array_split(torch.randperm(len(batch.count)).numpy(), n_minibatches):
+                rows = torch.from_numpy(episodes)
+                stats = self._step(state[rows], option[rows], task_index[rows], mask[rows], old_log_prob[rows],
+                                   advantage[rows], returns[rows])
+                for key, value_ in stats.items():
+                    totals[key] = totals.get(key, 0.0) + value_
+        return {key: total / (cfg.epochs * n_minibatches) for key, total in totals.items()}
+
+    def _step(
+        self, state: Tensor, option: Tensor, task_index: Tensor, mask: Tensor, old_log_prob: Tensor,
+        advantage: Tensor, returns: Tensor,
+    ) -> dict[str, float]:
+        """One gradient step on a minibatch of whole episodes; means are over real decisions only."""
+        cfg = self.config
+        used = int(mask.sum(1).max())
+        state, option, mask = state[:, :used], option[:, :used], mask[:, :used]
+        old_log_prob, advantage, returns = old_log_prob[:, :used], advantage[:, :used], returns[:, :used]
+        logits, value = replay_controller(self.policy, self.critic, state, task_index)
+        log_probs = torch.log_softmax(logits, -1)
+        log_prob = log_probs.gather(-1, option.unsqueeze(-1)).squeeze(-1)
+        real_advantage = advantage[mask]
+        if real_advantage.numel() > 1:
+            advantage = (advantage - real_advantage.mean()) / (real_advantage.std() + 1e-8)
+        ratio = torch.exp(log_prob - old_log_prob)
+        surrogate = torch.minimum(ratio * advantage, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * advantage)
+        entropy = -(log_probs.exp() * log_probs).sum(-1)
+        policy_loss = -surrogate[mask].mean()
+        value_loss = 0.5 * (value - returns)[mask].square().mean()
+        entropy_mean = entropy[mask].mean()
+        loss = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy_mean
+        self.optimizer.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.trainable, cfg.max_grad_norm)
+        self.optimizer.step()
+        with torch.no_grad():
+            log_ratio = (log_prob - old_log_prob)[mask]
+            return {
+                "policy_loss": policy_loss.item(),
+                "value_loss": value_loss.item(),
+                "entropy": entropy_mean.item(),
+                "approx_kl": ((log_ratio.exp() - 1) - log_ratio).mean().item(),
+                "clip_fraction": ((ratio[mask] - 1).abs() > cfg.clip).float().mean().item(),
+            }
+
+
+def env_tasks(tasks: Sequence[str], n_envs: int) -> list[str]:
+    """Tasks dealt round-robin over the envs, so every task gets n_envs / len(tasks) episodes per batch."""
+    if n_envs < len(tasks):
+        raise ValueError(f"{n_envs} envs cannot run {len(tasks)} tasks: use at least one env per task.")
+    return [tasks[e % len(tasks)] for e in range(n_envs)]
+
+
+def iteration_row(
+    batch: Decisions, tasks: Sequence[str], env_task: Sequence[str], labels: Sequence[str]
+) -> dict[str, Any]:
+    """Curve entries of one batch: mean return, success overall and per task (`success[label]`),
+    decisions per episode."""
+    row: dict[str, Any] = {
+        "episodes": len(batch.count),
+        "mean_return": float(batch.return_.mean()),
+        "success": float(batch.success.mean()),
+        "decisions_per_episode": float(batch.count.mean()),
+    }
+    env_task_array = np.asarray(env_task, dtype=object)
+    for task, label in zip(tasks, labels, strict=True):
+        row[f"success[{label}]"] = float(batch.success[env_task_array == task].mean())
+    return row
+
+
+def finetune(
+    policy: OCNPolicy,
+    envs: CraftBatch,
+    tasks: Sequence[str],
+    total_frames: int,
+    config: PPOConfig,
+    seed: int,
+    on_iteration: Callable[[dict[str, Any]], None] | None = None,
+    labels: Sequence[str] | None = None,
+) -> list[dict[str, Any]]:
+    """PPO until `total_frames` env frames are spent; one iteration = one episode in every env.
+
+    Seeds torch (option, termination and action sampling, initial weights of the critic) and the
+    env maps (drawn per iteration from a numpy Generator seeded with `seed`). The learning rate
+    decays linearly with the frames spent. Returns one row per iteration (also passed to
+    `on_iteration` as it happens): frames so far, lr, the batch's returns and successes (per task
+    under `labels`, default the task strings), PPO stats.
+    """
+    torch.manual_seed(seed)
+    map_seeds = np.random.default_rng(seed)
+    trainer = PPOTrainer(policy, config)
+    env_task = env_tasks(tasks, envs.num_envs)
+    frames, rows = 0, []
+    while frames < total_frames:
+        lr = trainer.set_lr_fraction(1.0 - frames / total_frames)
+        batch = collect(policy, envs, env_task, map_seeds.integers(0, 2**31 - 1, envs.num_envs), config.gamma)
+        frames += int(batch.frames.sum())
+        row = {"iteration": len(rows) + 1, "frames": frames, "lr": lr,
+               **iteration_row(batch, tasks, env_task, labels or tasks)}
+        row.update(trainer.update(batch))
+        rows.append(row)
+        if on_iteration is not None:
+            on_iteration(row)
+    return rows
