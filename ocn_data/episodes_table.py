@@ -32,9 +32,25 @@ class EpisodeArrays:
     episode_index: np.ndarray
 
 
+def read_info(root: Path) -> dict:
+    """A LeRobot dataset's `meta/info.json`; a folder without one is named as not a dataset."""
+    path = Path(root) / "meta" / "info.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{root} is not a LeRobot dataset (no meta/info.json).")
+    return json.loads(path.read_text())
+
+
+def read_craft_info(root: Path, tool: str) -> dict:
+    """`read_info` of a dataset that `tool` can read: Craft's subtasks, scene and state layout only."""
+    info = read_info(root)
+    if info.get("robot_type") not in (None, "craft"):
+        raise ValueError(f"{tool} reads Craft datasets; {root} has robot_type {info.get('robot_type')!r}.")
+    return info
+
+
 def split_episodes(root: Path, split: str) -> range:
     """Episode indices of a split named in `meta/info.json` ("train", "val", or "all")."""
-    info = json.loads((Path(root) / "meta" / "info.json").read_text())
+    info = read_info(root)
     if split == "all":
         return range(info["total_episodes"])
     splits = info.get("splits") or {}

@@ -33,14 +33,19 @@ def number_array() -> dict:
     return {"type": "array", "items": {"type": "number"}}
 
 
+def check_new_log(path: str | Path) -> None:
+    """MCAP logs are never overwritten: called by the log itself, and by tools before their long work."""
+    if Path(path).exists():
+        raise FileExistsError(f"--mcap {path} already exists; MCAP logs are never overwritten")
+
+
 class JsonMcapLog:
     """An MCAP file of JSON messages on JSON-schema channels, with episodes laid end to end on the
     log clock (one frame = 1/fps s). The file must not exist: logs are never overwritten."""
 
     def __init__(self, path: str | Path, fps: int, channels: dict[str, bytes], library: str) -> None:
         self.path = Path(path)
-        if self.path.exists():
-            raise FileExistsError(f"{self.path} already exists; MCAP logs are never overwritten")
+        check_new_log(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("wb")
         self._writer = Writer(self._file, compression=CompressionType.ZSTD)

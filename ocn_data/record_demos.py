@@ -16,11 +16,11 @@ from pathlib import Path
 from tqdm import tqdm
 
 from envs.craft.render import TILE
-from envs.craft.world import GRID_SIZE, MODES, REWARDS, parse_task, task_description
+from envs.craft.world import GRID_SIZE, MODES, REWARDS, parse_task_list, task_description
 from ocn_data.craft_recorder import FPS, CraftRecorder, craft_features
 from ocn_data.datacard import dataset_card
 from ocn_data.lerobot_writer import ColumnarDatasetWriter, DatasetExistsError
-from ocn_data.mcap_log import DemoMcapWriter
+from ocn_data.mcap_log import DemoMcapWriter, check_new_log
 from ocn_data.provenance import load_provenance, write_provenance
 
 
@@ -58,13 +58,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _parse_tasks(spec: str, mode: str) -> list[tuple[int, ...]]:
-    tasks = [parse_task(part.strip(), mode) for part in spec.split(",")]
-    if len(set(tasks)) != len(tasks):
-        raise ValueError(f"--tasks lists a task twice: {spec!r}")
-    return tasks
-
-
 def _write_card_and_provenance(root: Path, repo_id: str, provenance: dict) -> None:
     write_provenance(root, provenance)
     (root / "README.md").write_text(dataset_card(root, repo_id))
@@ -72,11 +65,11 @@ def _write_card_and_provenance(root: Path, repo_id: str, provenance: dict) -> No
 
 def record(args: argparse.Namespace) -> int:
     """Run one recording session; returns the process exit code."""
-    tasks = _parse_tasks(args.tasks, args.mode)
+    tasks = parse_task_list(args.tasks, args.mode)
     if args.episodes_per_task < 1:
         raise ValueError(f"--episodes-per-task must be >= 1, got {args.episodes_per_task}")
-    if args.mcap is not None and args.mcap.exists():
-        raise FileExistsError(f"--mcap {args.mcap} already exists; MCAP logs are never overwritten")
+    if args.mcap is not None:
+        check_new_log(args.mcap)
     provenance = load_provenance(args.root) if args.resume else {"sessions": []}
     if args.resume and provenance["sessions"] and provenance["sessions"][-1]["mode"] != args.mode:
         raise ValueError(f"--resume: the dataset was recorded in mode {provenance['sessions'][-1]['mode']!r}")

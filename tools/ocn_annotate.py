@@ -47,16 +47,15 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
 def check_paths(root: Path, out_root: Path) -> None:
     """Refuse before any parsing: no dataset at root, an existing out-root, an out-root inside root,
     or a dataset without the ground-truth columns that episodes are read with."""
-    info_path = root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise FileNotFoundError(f"{root} is not a LeRobot dataset (no meta/info.json).")
+    from ocn_data.episodes_table import read_info
+
+    info = read_info(root)
     if out_root.exists():
         raise FileExistsError(
             f"--out-root {out_root} already exists; ocn-annotate writes a new dataset, choose a new folder."
         )
     if out_root.resolve().is_relative_to(root.resolve()):
         raise ValueError(f"--out-root {out_root} lies inside the dataset {root}; choose a folder outside it.")
-    info = json.loads(info_path.read_text())
     missing = [key for key in LABELS if key not in info["features"]]
     if missing:
         raise ValueError(

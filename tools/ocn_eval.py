@@ -80,17 +80,16 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     """Everything `ocn-eval` reports, as the JSON it writes."""
     import torch
 
-    from ocn_data.episodes_table import load_episodes, split_episodes
+    from ocn_data.episodes_table import load_episodes, read_craft_info, split_episodes
+    from ocn_data.mcap_log import check_new_log
     from tools.craft_rollouts import free_run_success, option_subtask_success
     from tools.episode_parsing import load_ocn, parse_episodes
     from tools.parsing_metrics import boundaries_from_labels, parsing_scores
 
-    if args.mcap is not None and args.mcap.exists():
-        raise FileExistsError(f"--mcap {args.mcap} already exists; MCAP logs are never overwritten")
+    if args.mcap is not None:
+        check_new_log(args.mcap)
+    info = read_craft_info(args.root, "ocn-eval")
     policy, preprocessor, postprocessor = load_ocn(args.policy, args.device)
-    info = json.loads((args.root / "meta" / "info.json").read_text())
-    if info.get("robot_type") not in (None, "craft"):
-        raise ValueError(f"ocn-eval runs Craft datasets; {args.root} has robot_type {info.get('robot_type')!r}.")
     torch.manual_seed(args.seed)  # the policy samples its actions: same seed, same rollouts
     started = time.perf_counter()
     episodes = load_episodes(args.root, split_episodes(args.root, args.split), args.max_episodes)

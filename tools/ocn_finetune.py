@@ -67,20 +67,6 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def task_descriptions(spec: str, mode: str) -> list[str]:
-    """Canonical task descriptions ("get wood, get grass, get iron") of a comma-separated task list:
-    the strings the Craft env hands to the policy, so the new controller states are keyed by them."""
-    from envs.craft.world import parse_task, task_description
-
-    specs = [part.strip() for part in spec.split(",") if part.strip()]
-    if not specs:
-        raise ValueError("--tasks is empty; give tasks such as ADC,CAD,DCA.")
-    tasks = [task_description(parse_task(part, mode)) for part in specs]
-    if len(set(tasks)) != len(tasks):
-        raise ValueError(f"--tasks {spec!r} names a task twice.")
-    return tasks
-
-
 def check_poolable(policies: Sequence[OCNPolicy], names: Sequence[str]) -> None:
     """Options can only be pooled if they read the same inputs and write the same action head."""
     first = policies[0].config
@@ -187,13 +173,16 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     from tqdm import tqdm
 
     from envs.craft.batch import CraftBatch
-    from envs.craft.world import parse_task, task_code
+    from envs.craft.world import parse_task_list, task_code, task_description
     from tools.episode_parsing import load_ocn
     from tools.ppo import PPOConfig, env_tasks, finetune
 
     _check_args(args)
     torch.set_num_threads(args.threads)
-    tasks = task_descriptions(args.tasks, args.mode)
+    parsed = parse_task_list(args.tasks, args.mode)
+    # The env hands the policy canonical descriptions ("get wood, get grass, get iron"): key the new
+    # controller states by them, and label the curve by task code.
+    tasks, labels = [task_description(t) for t in parsed], [task_code(t) for t in parsed]
     env_tasks(tasks, args.envs)
     config = PPOConfig(lr=args.lr, epochs=args.epochs, batch_size=args.batch_size, gamma=args.gamma,
                        gae_lambda=args.gae_lambda, clip=args.clip, entropy_coef=args.entropy)
@@ -206,7 +195,6 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     envs = CraftBatch(args.envs, mode=args.mode, reward=args.reward, max_steps=args.max_steps)
 
     args.out.mkdir(parents=True, exist_ok=True)
-    labels = [task_code(parse_task(task, args.mode)) for task in tasks]
     started = time.perf_counter()
     with open(args.out / "curve.csv", "w", newline="") as handle, \
             tqdm(total=args.frames, desc="ocn-finetune", unit="frame") as bar:

@@ -81,10 +81,9 @@ def dataset_files(root: Path) -> dict[str, Path]:
     LeRobot's `images/` scratch folder, hidden files and half-written `*.tmp` files."""
     from lerobot.datasets.dataset_metadata import CODEBASE_VERSION
 
-    info_path = root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise FileNotFoundError(f"{root} is not a LeRobot dataset (no meta/info.json).")
-    version = json.loads(info_path.read_text()).get("codebase_version")
+    from ocn_data.episodes_table import read_info
+
+    version = read_info(root).get("codebase_version")
     if version != CODEBASE_VERSION:
         raise ValueError(f"{root} is a LeRobot {version} dataset; ocn-push publishes {CODEBASE_VERSION} datasets.")
     if not any((root / "data").glob("*/*.parquet")):

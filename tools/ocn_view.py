@@ -32,7 +32,6 @@ against chosen option) above the p^c, e_t and action plots.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import dataclass
@@ -48,6 +47,7 @@ from tqdm import tqdm
 from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING
 from envs.craft.render import TILE, render_batch
 from envs.craft.world import ACTION_NAMES, BOUNDARY, GRID_SIZE, INTERIOR_SIZE, N_SUBTASKS, SUBTASK_LETTERS
+from ocn_data.episodes_table import read_craft_info
 from tools.parsing_metrics import segment_starts
 from tools.segmentation_plot import (
     SUBTASK_COLOURS,
@@ -126,17 +126,6 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.png_episodes < 1:
         parser.error("--png-episodes must be at least 1")
     return args
-
-
-def _dataset_info(root: Path) -> dict[str, Any]:
-    """The dataset's meta/info.json; the scene and the subtask names are Craft's, so only Craft."""
-    path = root / "meta" / "info.json"
-    if not path.exists():
-        raise FileNotFoundError(f"{root} is not a LeRobot dataset: it has no meta/info.json.")
-    info = json.loads(path.read_text())
-    if info.get("robot_type") not in (None, "craft"):
-        raise ValueError(f"ocn-view draws Craft datasets; {root} has robot_type {info.get('robot_type')!r}.")
-    return info
 
 
 def _episode_groups(
@@ -402,7 +391,7 @@ def _wait_for_interrupt() -> None:
 def main(argv: list[str] | None = None) -> int:
     args = _parse_args(argv)
     try:
-        info = _dataset_info(args.root)
+        info = read_craft_info(args.root, "ocn-view")
         episodes = load_view(args, info)
     except (FileNotFoundError, ValueError) as error:
         print(f"ocn-view: {error}", file=sys.stderr)

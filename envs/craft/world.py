@@ -194,6 +194,15 @@ def parse_task(spec: str, mode: str = "paper") -> tuple[int, ...]:
     return tuple(ids)
 
 
+def parse_task_list(spec: str, mode: str = "paper") -> list[tuple[int, ...]]:
+    """A comma-separated task list (`--tasks AC,CD,DA`) as subtask ids; an empty entry or a task
+    named twice is an error (task lists hold letters or named tasks, not comma descriptions)."""
+    tasks = [parse_task(part, mode) for part in spec.split(",")]
+    if len(set(tasks)) != len(tasks):
+        raise ValueError(f"--tasks lists a task twice: {spec!r}")
+    return tasks
+
+
 def check_task(subtasks: Sequence[int], mode: str) -> tuple[int, ...]:
     """Validate an already-parsed task against a mode (same errors as parse_task)."""
     ids = tuple(int(s) for s in subtasks)
