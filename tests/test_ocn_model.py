@@ -239,6 +239,23 @@ def test_episode_windows_train_on_whole_episodes_from_their_start():
     assert stats["frames_used"] == 4 * 5
 
 
+def test_trailing_padding_is_cut_without_changing_loss_or_gradients():
+    episodes = make_batch(batch=4, steps=5)
+    long_window = pad_around(episodes, lead=[0, 0, 0, 0], width=12)
+    episodes[f"{ACTION}_is_pad"][0, 3:] = long_window[f"{ACTION}_is_pad"][0, 3:] = True
+    policy = make_policy(window_size=12, window_start="any")
+    mask, state, action = policy._training_windows(long_window)
+    assert mask.shape == (4, 5) and state.shape[:2] == (4, 5) and action.shape[:2] == (4, 5)
+    grads = []
+    for batch in (long_window, episodes):
+        policy.zero_grad(set_to_none=True)
+        loss, _ = policy(batch)
+        loss.backward()
+        grads.append([p.grad.clone() for p in policy.parameters()])
+    for trimmed, reference in zip(*grads, strict=True):
+        torch.testing.assert_close(trimmed, reference)
+
+
 def test_any_windows_start_where_they_are_sampled():
     policy = make_policy(window_size=5, window_start="any")
     assert policy.config.observation_delta_indices == list(range(5))

@@ -74,6 +74,16 @@ def align_to_first_frame(valid: Tensor, length: int, *windows: Tensor) -> tuple[
     return (mask, *shifted)
 
 
+def trim_trailing_padding(mask: Tensor, *windows: Tensor) -> tuple[Tensor, ...]:
+    """Cut mask [B, W] and windows [B, W, ...] after the last step that any row uses.
+
+    The recurrence costs the same per step whether a step is padding or not, and windows hold
+    whole episodes padded to the longest one the dataset may have: most batches end long before.
+    """
+    used = int(mask.any(0).nonzero().max().item()) + 1 if mask.any() else 1
+    return tuple(window[:, :used] for window in (mask, *windows))
+
+
 def episode_lengths(dataset_meta: Any) -> list[int]:
     """Frames per episode of a LeRobot dataset (its episode table is read from disk if not loaded yet)."""
     if dataset_meta.total_episodes == 0:
@@ -165,8 +175,10 @@ class OCNPolicy(PreTrainedPolicy):
         """(mask [B, W], state [B, W, S], action [B, W, ...]) of sequences that each start at t = 1."""
         valid = frame_mask(batch)
         if self.config.window_start == "any":
-            return valid, batch[OBS_STATE], batch[ACTION]
-        return align_to_first_frame(valid, self.config.window_size, batch[OBS_STATE], batch[ACTION])
+            windows = (valid, batch[OBS_STATE], batch[ACTION])
+        else:
+            windows = align_to_first_frame(valid, self.config.window_size, batch[OBS_STATE], batch[ACTION])
+        return trim_trailing_padding(*windows)
 
     def _action_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
         """log p^a_t(a_t) [B, T] for time-major outputs and batch-major actions [B, T, A].

@@ -1,18 +1,15 @@
-"""`ocn-reproduce`: the paper's experiments end to end, from recording to the committed results.
+"""`ocn-reproduce imitation-s1`: OCN imitation on S1 with the paper's ablations.
 
-`ocn-reproduce imitation-s1` records (or reuses) the S1 demonstrations ({AC, CD, DA}, 6000 each),
-trains OCN with `lerobot-train` on the train split for each seed and each ablation (2, 3 and 6
-options; temperature 1 against 10), scores every run with `ocn-eval` on the validation split and
-writes `results/imitation_s1.{json,md}` with plots. Finished runs are reused, so an interrupted
-reproduction continues where it stopped.
+Records (or reuses) the S1 demonstrations ({AC, CD, DA}, 6000 each), trains OCN with `lerobot-train`
+on the train split for each seed and each ablation (2, 3 and 6 options; temperature 1 against 10),
+scores every run with `ocn-eval` on the validation split and writes `results/imitation_s1.{json,md}`
+with plots. Finished runs are reused, so an interrupted reproduction continues where it stopped.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
 import subprocess
 import sys
 import time
@@ -23,11 +20,12 @@ from typing import Any
 import numpy as np
 
 from tools import console_script
-
 from tools.bench import RESULTS, machine
 
+from tools.reproduce.runs import TrainSettings, record_dataset, train_policy
+
 S1_TASKS = "AC,CD,DA"
-SAVE_EVERY = 1000  # lerobot-train checkpoints this often, so a stopped run resumes from its last one
+S1_REPO_ID = "local/craft_s1"
 METRICS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "diagonal_mean", "off_diagonal_max", "mean_success_rate")
 
 
@@ -52,49 +50,34 @@ def _slug(name: str) -> str:
     return name.replace(", ", "_").replace(" ", "").replace("=", "")
 
 
-def record_s1(root: Path, episodes_per_task: int, seed: int) -> None:
-    """Record the S1 demonstrations unless `root` already holds a finished dataset."""
-    if (root / "meta" / "info.json").exists():
-        print(f"reusing the S1 dataset in {root}", flush=True)
-        return
-    subprocess.run(
-        [console_script("record_demos"), "--env", "craft", "--tasks", S1_TASKS, "--episodes-per-task", str(episodes_per_task),
-         "--root", str(root), "--repo-id", "local/craft_s1", "--seed", str(seed)],
-        check=True,
-    )
+def train_settings(args: argparse.Namespace) -> TrainSettings:
+    """The study's `lerobot-train` settings from its command line."""
+    return TrainSettings(args.steps, args.batch_size, args.window_size, args.num_workers, args.threads,
+                         {"controller_lr_scale": args.controller_lr_scale})
 
 
-def train_command(args: argparse.Namespace, data: Path, out: Path, variant: Variant, seed: int) -> list[str]:
-    """The `lerobot-train` call of one run, on the dataset's train split."""
-    from ocn_data.episodes_table import split_episodes
+def s1_data(args: argparse.Namespace) -> Path:
+    """The S1 demonstrations in the workdir, recorded on first use."""
+    data = args.workdir / "craft_s1"
+    record_dataset(data, S1_TASKS, S1_REPO_ID, args.episodes_per_task, args.data_seed)
+    return data
 
-    train = split_episodes(data, "train")
-    command = [
-        console_script("lerobot-train"), "--policy.type=ocn", "--dataset.repo_id=local/craft_s1", f"--dataset.root={data}",
-        f"--dataset.episodes=[{','.join(map(str, train))}]", "--policy.device=cpu", "--policy.push_to_hub=false",
-        "--wandb.enable=false", "--env_eval_freq=0", f"--steps={args.steps}", f"--batch_size={args.batch_size}",
-        f"--num_workers={args.num_workers}", f"--save_freq={min(args.steps, SAVE_EVERY)}", "--log_freq=50", f"--seed={seed}",
-        f"--policy.window_size={args.window_size}", f"--policy.controller_lr_scale={args.controller_lr_scale}",
-        f"--output_dir={out}",
-    ]
-    return command + [f"--policy.{key}={value}" for key, value in variant.overrides.items()]
+
+def run_dir(workdir: Path, variant: Variant, seed: int) -> Path:
+    return workdir / "imitation_s1" / _slug(variant.name) / f"seed{seed}"
 
 
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:
     """Train (unless done before) and evaluate one seed of one variant; returns its record."""
-    run_dir = args.workdir / "imitation_s1" / _slug(variant.name) / f"seed{seed}"
-    checkpoint = run_dir / "train" / "checkpoints" / "last" / "pretrained_model"
-    record_path = run_dir / "record.json"
-    command = train_command(args, data, run_dir / "train", variant, seed)
-    shown = " ".join(command[:4] + ["--dataset.episodes=[<train split>]"] + command[5:])
-    _check_reusable(run_dir, shown)
+    folder = run_dir(args.workdir, variant, seed)
+    record_path = folder / "record.json"
+    trained = train_policy(train_settings(args), data, S1_REPO_ID, folder, seed, variant.overrides)
     if record_path.exists():
         return json.loads(record_path.read_text())
-    train_s = train(args, command, shown, run_dir)
-    eval_json = run_dir / "eval.json"
+    eval_json = folder / "eval.json"
     started = time.perf_counter()
     subprocess.run(
-        [console_script("ocn-eval"), "--policy", str(checkpoint), "--root", str(data), "--repo-id", "local/craft_s1",
+        [console_script("ocn-eval"), "--policy", str(trained.checkpoint), "--root", str(data), "--repo-id", S1_REPO_ID,
          "--split", "val", "--out", str(eval_json), "--rollouts", str(args.rollouts)],
         check=True,
     )
@@ -105,76 +88,13 @@ def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -
     record = {
         "variant": variant.name,
         "seed": seed,
-        "train_wall_s": train_s,
+        "train_wall_s": trained.train_wall_s,
         "eval_wall_s": round(time.perf_counter() - started, 1),
-        "train_command": shown,
+        "train_command": trained.command,
         "scores": scores,
     }
     record_path.write_text(json.dumps(record, indent=2) + "\n")
     return record
-
-
-def _trained_steps(train_dir: Path) -> int:
-    """The step of the run's latest lerobot-train checkpoint (0 if it has none)."""
-    path = train_dir / "checkpoints" / "last" / "training_state" / "training_step.json"
-    return json.loads(path.read_text())["step"] if path.exists() else 0
-
-
-def train(args: argparse.Namespace, command: list[str], shown: str, run_dir: Path) -> float | None:
-    """Run lerobot-train until the run has all its steps: from scratch, or resumed from the last
-    checkpoint of a stopped run (a run folder with no checkpoint yet starts over). Returns the wall
-    seconds of every training invocation of this run added up (None if an earlier reproduction
-    trained it all)."""
-    train_dir, times_path = run_dir / "train", run_dir / "train_wall_s.json"
-    done = _trained_steps(train_dir)
-    if done >= args.steps:
-        return json.loads(times_path.read_text())["total"] if times_path.exists() else None
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "train_command.txt").write_text(shown + "\n")
-    if done == 0:
-        shutil.rmtree(train_dir, ignore_errors=True)
-        print(f"training {run_dir}", flush=True)
-    else:
-        config = train_dir / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
-        command = [command[0], f"--config_path={config}", "--resume=true"]
-        print(f"resuming {run_dir} from step {done}", flush=True)
-    times = json.loads(times_path.read_text()) if times_path.exists() else {"invocations": [], "total": 0.0}
-    started = time.perf_counter()
-    with open(run_dir / "train.log", "a") as log:
-        subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT, env=_train_env(args))
-    wall = round(time.perf_counter() - started, 1)
-    times["invocations"].append({"from_step": done, "wall_s": wall})
-    times["total"] = round(times["total"] + wall, 1)
-    times_path.write_text(json.dumps(times, indent=2) + "\n")
-    return times["total"]
-
-
-def _check_reusable(run_dir: Path, command: str) -> None:
-    """Refuse to reuse a run that was trained by another command (other steps, seed, overrides...)."""
-    record_path, command_path = run_dir / "record.json", run_dir / "train_command.txt"
-    if record_path.exists():
-        before = json.loads(record_path.read_text())["train_command"]
-    elif command_path.exists():
-        before = command_path.read_text().strip()
-    else:
-        return
-    if _settings(before) != _settings(command):
-        raise SystemExit(
-            f"{run_dir} holds a run trained with other settings:\n  {before}\nwhile this reproduction "
-            f"would run:\n  {command}\nMove that folder away or pass another --workdir."
-        )
-
-
-def _settings(command: str) -> list[str]:
-    """A training command without what does not change the trained model: its paths (program, data
-    root, output dir), which may move, and how often it logs and saves."""
-    ignored = ("--dataset.root=", "--output_dir=", "--save_freq=", "--log_freq=")
-    return [word for word in command.split()[1:] if not word.startswith(ignored)]
-
-
-def _train_env(args: argparse.Namespace) -> dict[str, str]:
-    """One math thread per process: the data workers already fill the other cores."""
-    return {**os.environ, "OMP_NUM_THREADS": str(args.threads), "MKL_NUM_THREADS": str(args.threads)}
 
 
 def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -285,8 +205,7 @@ def imitation_s1(args: argparse.Namespace) -> int:
     """Every planned run in turn; the results files are rewritten after each one, so a reproduction
     stopped part-way leaves results for the runs it finished (the files say how many)."""
     started = time.perf_counter()
-    data = args.workdir / "craft_s1"
-    record_s1(data, args.episodes_per_task, args.data_seed)
+    data = s1_data(args)
     planned = [
         (variant, seed)
         for variant in VARIANTS
@@ -320,36 +239,33 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
     (args.results / "imitation_s1.json").write_text(json.dumps(result, indent=2) + "\n")
     (args.results / "imitation_s1.md").write_text(markdown(result))
     plot(records, args.results / "imitation_s1.png")
-    first = args.workdir / "imitation_s1" / _slug(VARIANTS[0].name) / "seed1" / "eval.png"
+    first = run_dir(args.workdir, VARIANTS[0], 1) / "eval.png"
     if first.exists():
         (args.results / "imitation_s1_option_table.png").write_bytes(first.read_bytes())
     return result
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="ocn-reproduce", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="experiment", required=True)
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """The `imitation-s1` subcommand."""
     s1 = sub.add_parser("imitation-s1", help="OCN imitation on S1 with the paper's ablations",
                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     s1.add_argument("--seeds", type=int, default=5, help="seeds of the main variant (3 options, T=10)")
     s1.add_argument("--ablation-seeds", type=int, default=1, help="seeds of each ablation; 0 skips them")
-    s1.add_argument("--steps", type=int, default=5000, help="lerobot-train steps per run")
-    s1.add_argument("--batch-size", type=int, default=128, help="windows (episodes) per step")
-    s1.add_argument("--window-size", type=int, default=24, help="longest episode a window holds")
-    s1.add_argument("--controller-lr-scale", type=float, default=1.0,
-                    help="controller learning rate / the options' (see OCNConfig.controller_lr_scale)")
-    s1.add_argument("--num-workers", type=int, default=2, help="lerobot-train data workers")
-    s1.add_argument("--threads", type=int, default=1, help="math threads of each process")
-    s1.add_argument("--episodes-per-task", type=int, default=6000)
-    s1.add_argument("--data-seed", type=int, default=0)
+    add_training_arguments(s1)
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
-    s1.add_argument("--workdir", type=Path, default=Path("outputs/reproduce"))
     s1.add_argument("--results", type=Path, default=RESULTS)
     s1.set_defaults(func=imitation_s1)
-    args = parser.parse_args(argv)
-    args.argv = argv
-    return args.func(args)
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def add_training_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of the S1 data and of its `lerobot-train` runs, shared by every study that trains on S1."""
+    parser.add_argument("--steps", type=int, default=5000, help="lerobot-train steps per run")
+    parser.add_argument("--batch-size", type=int, default=128, help="windows (episodes) per step")
+    parser.add_argument("--window-size", type=int, default=24, help="longest episode a window holds")
+    parser.add_argument("--controller-lr-scale", type=float, default=1.0,
+                        help="controller learning rate / the options' (see OCNConfig.controller_lr_scale)")
+    parser.add_argument("--num-workers", type=int, default=2, help="lerobot-train data workers")
+    parser.add_argument("--threads", type=int, default=1, help="math threads of each process")
+    parser.add_argument("--episodes-per-task", type=int, default=6000)
+    parser.add_argument("--data-seed", type=int, default=0)
+    parser.add_argument("--workdir", type=Path, default=Path("outputs/reproduce"))

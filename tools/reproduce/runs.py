@@ -1,0 +1,139 @@
+"""What every reproduction shares: recording a dataset once, and `lerobot-train` runs that resume
+from their last checkpoint and are never silently reused when their settings changed."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tools import console_script
+
+SAVE_EVERY = 1000  # lerobot-train checkpoints this often, so a stopped run resumes from its last one
+
+
+def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int, seed: int) -> None:
+    """Record Craft demonstrations of `tasks` (comma-separated) unless `root` holds a finished dataset."""
+    if (root / "meta" / "info.json").exists():
+        print(f"reusing the dataset in {root}", flush=True)
+        return
+    subprocess.run(
+        [console_script("record_demos"), "--env", "craft", "--tasks", tasks, "--episodes-per-task", str(episodes_per_task),
+         "--root", str(root), "--repo-id", repo_id, "--seed", str(seed)],
+        check=True,
+    )
+
+
+@dataclass
+class TrainSettings:
+    """How every `lerobot-train` run of a study trains; `policy` holds extra `--policy.*` values."""
+
+    steps: int
+    batch_size: int
+    window_size: int
+    num_workers: int = 2
+    threads: int = 1
+    policy: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class TrainedRun:
+    """A finished training run: its checkpoint, the command shown in records, and its wall time
+    (None when an earlier reproduction trained all of it and kept no timing)."""
+
+    checkpoint: Path
+    command: str
+    train_wall_s: float | None
+
+
+def train_command(
+    settings: TrainSettings, data: Path, repo_id: str, out: Path, seed: int, overrides: dict[str, Any]
+) -> list[str]:
+    """The `lerobot-train` call of one OCN run on the dataset's train split."""
+    from ocn_data.episodes_table import split_episodes
+
+    train = split_episodes(data, "train")
+    command = [
+        console_script("lerobot-train"), "--policy.type=ocn", f"--dataset.repo_id={repo_id}", f"--dataset.root={data}",
+        f"--dataset.episodes=[{','.join(map(str, train))}]", "--policy.device=cpu", "--policy.push_to_hub=false",
+        "--wandb.enable=false", "--env_eval_freq=0", f"--steps={settings.steps}", f"--batch_size={settings.batch_size}",
+        f"--num_workers={settings.num_workers}", f"--save_freq={min(settings.steps, SAVE_EVERY)}", "--log_freq=50",
+        f"--seed={seed}", f"--policy.window_size={settings.window_size}", f"--output_dir={out}",
+    ]
+    return command + [f"--policy.{key}={value}" for key, value in {**settings.policy, **overrides}.items()]
+
+
+def train_policy(
+    settings: TrainSettings, data: Path, repo_id: str, run_dir: Path, seed: int, overrides: dict[str, Any]
+) -> TrainedRun:
+    """Train one run into `run_dir/train` (or finish or reuse it) and return its last checkpoint."""
+    command = train_command(settings, data, repo_id, run_dir / "train", seed, overrides)
+    shown = " ".join(command[:4] + ["--dataset.episodes=[<train split>]"] + command[5:])
+    check_reusable(run_dir, shown)
+    wall = train(settings, command, shown, run_dir)
+    return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall)
+
+
+def _trained_steps(train_dir: Path) -> int:
+    """The step of the run's latest lerobot-train checkpoint (0 if it has none)."""
+    path = train_dir / "checkpoints" / "last" / "training_state" / "training_step.json"
+    return json.loads(path.read_text())["step"] if path.exists() else 0
+
+
+def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path) -> float | None:
+    """Run lerobot-train until the run has all its steps: from scratch, or resumed from the last
+    checkpoint of a stopped run (a run folder with no checkpoint yet starts over). Returns the wall
+    seconds of every training invocation of this run added up (None if an earlier reproduction
+    trained it all)."""
+    train_dir, times_path = run_dir / "train", run_dir / "train_wall_s.json"
+    done = _trained_steps(train_dir)
+    if done >= settings.steps:
+        return json.loads(times_path.read_text())["total"] if times_path.exists() else None
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "train_command.txt").write_text(shown + "\n")
+    if done == 0:
+        shutil.rmtree(train_dir, ignore_errors=True)
+        print(f"training {run_dir}", flush=True)
+    else:
+        config = train_dir / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
+        command = [command[0], f"--config_path={config}", "--resume=true"]
+        print(f"resuming {run_dir} from step {done}", flush=True)
+    times = json.loads(times_path.read_text()) if times_path.exists() else {"invocations": [], "total": 0.0}
+    started = time.perf_counter()
+    # One math thread per process: the data workers already fill the other cores.
+    env = {**os.environ, "OMP_NUM_THREADS": str(settings.threads), "MKL_NUM_THREADS": str(settings.threads)}
+    with open(run_dir / "train.log", "a") as log:
+        subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT, env=env)
+    wall = round(time.perf_counter() - started, 1)
+    times["invocations"].append({"from_step": done, "wall_s": wall})
+    times["total"] = round(times["total"] + wall, 1)
+    times_path.write_text(json.dumps(times, indent=2) + "\n")
+    return times["total"]
+
+
+def check_reusable(run_dir: Path, command: str) -> None:
+    """Refuse to reuse a run that was trained by another command (other steps, seed, overrides...)."""
+    record_path, command_path = run_dir / "record.json", run_dir / "train_command.txt"
+    if record_path.exists():
+        before = json.loads(record_path.read_text())["train_command"]
+    elif command_path.exists():
+        before = command_path.read_text().strip()
+    else:
+        return
+    if _settings(before) != _settings(command):
+        raise SystemExit(
+            f"{run_dir} holds a run trained with other settings:\n  {before}\nwhile this reproduction "
+            f"would run:\n  {command}\nMove that folder away or pass another --workdir."
+        )
+
+
+def _settings(command: str) -> list[str]:
+    """A training command's arguments in any order, without what does not change the trained model:
+    its paths (program, data root, output dir), which may move, and how often it logs and saves."""
+    ignored = ("--dataset.root=", "--output_dir=", "--save_freq=", "--log_freq=")
+    return sorted(word for word in command.split()[1:] if not word.startswith(ignored))
