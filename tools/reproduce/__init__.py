@@ -1,7 +1,8 @@
 """`ocn-reproduce`: the paper's experiments end to end, from recording to the committed results.
 
 Each experiment is a subcommand in its own module: `imitation-s1` (skill induction and its
-ablations, `imitation.py`). What they share (recording, resumable `lerobot-train` runs) is in
+ablations, `imitation.py`), `s1` and `s2` (finetuning over frozen skills against MoE and flat PPO,
+`finetune.py`). What they share (recording, resumable `lerobot-train` runs) is in
 `runs.py`.
 """
 
@@ -10,13 +11,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tools.reproduce import imitation
+from tools.reproduce import finetune, imitation
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="ocn-reproduce", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="experiment", required=True)
     imitation.add_parser(sub)
+    finetune.add_parsers(sub)
     args = parser.parse_args(argv)
     args.argv = argv
     return args.func(args)

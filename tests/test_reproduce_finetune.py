@@ -1,0 +1,56 @@
+"""ocn-reproduce s1/s2 end to end on a tiny budget: clone, finetune, results, reuse."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from tools.reproduce.finetune import METHODS, SETTINGS, finetune_command
+from tools.reproduce.runs import TrainedRun
+
+TINY = ["--seeds", "1", "--steps", "2", "--batch-size", "8", "--num-workers", "0", "--episodes-per-task", "12",
+        "--frames", "1500", "--envs", "8"]
+
+
+def _reproduce(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
+    script = Path(sys.executable).with_name("ocn-reproduce")
+    command = [str(script), "s1", *TINY, "--workdir", str(tmp_path / "work"), "--results", str(tmp_path / "results"), *extra]
+    return subprocess.run(command, capture_output=True, text=True, timeout=600)
+
+
+def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
+    done = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse")
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())
+    assert result["runs_finished"] == result["runs_planned"] == 1
+    row = result["summary"]["OCN | sparse"]
+    assert set(row["at_budget"]) == {"mean_return", "success", "success[ADC]", "success[CAD]", "success[DCA]"}
+    assert len(row["curves"]["success"]["mean"]) == len(row["curve_frames"])
+    assert row["curve_frames"][-1] >= 1500
+    assert all(0.0 <= row["at_budget"][k]["mean"] <= 1.0 for k in ("success", "success[ADC]"))
+    assert [c["check"] for c in result["must_show"]][0].startswith("OCN, sparse: success >= 0.9")
+    assert (tmp_path / "results" / "finetune_s1.png").stat().st_size > 0
+    assert "| OCN | sparse | 1 |" in (tmp_path / "results" / "finetune_s1.md").read_text()
+    # S1's OCN clone is the imitation study's main-variant run, shared by both reproductions.
+    assert (tmp_path / "work" / "imitation_s1" / "3options_T10" / "seed1" / "train").is_dir()
+
+    again = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse")
+    assert again.returncode == 0 and "finetuning" not in again.stdout and "training" not in again.stdout
+
+    changed = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--frames", "3000")
+    assert changed.returncode != 0 and "another command" in changed.stderr
+
+
+def test_unknown_method_is_refused(tmp_path):
+    done = _reproduce(tmp_path, "--methods", "ocn,options")
+    assert done.returncode != 0 and "unknown method or reward ['options']" in done.stderr
+
+
+def test_s2_pools_the_options_of_both_cloned_models(tmp_path):
+    import argparse
+
+    args = argparse.Namespace(frames=100, envs=4)
+    clones = [TrainedRun(tmp_path / name / "pretrained_model", "", None) for name in ("ab", "cd")]
+    command = finetune_command(args, SETTINGS["s2"], METHODS[0], "sparse", 1, clones, tmp_path / "out")
+    assert [command[i + 1] for i, word in enumerate(command) if word == "--checkpoint"] == [str(c.checkpoint) for c in clones]
+    assert command[command.index("--tasks") + 1] == "BADC,ACBD,CABD"

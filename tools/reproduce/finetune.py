@@ -1,0 +1,320 @@
+"""`ocn-reproduce s1` and `ocn-reproduce s2`: reusing skills with PPO (paper section 4.1, figures 4-5).
+
+S1: OCN and MoE are cloned from the S1 demonstrations ({AC, CD, DA}); their options are frozen and
+a fresh controller is trained by PPO on ADC, CAD and DCA. S2: one model is cloned from {AB, BA} and
+one from {CD, DC}; their option pools are merged and the controller learns BADC, ACBD and CABD.
+Flat PPO learns each setting from scratch on the primitive actions, as the reference that shows
+why skills matter. Every method gets the same env-frame budget, each reward (sparse, dense) and
+each seed; the learning curves and the issue's checks go to `results/finetune_{s1,s2}.{json,md,png}`,
+rewritten after every finished run. Finished runs are reused; a run folder made by another command
+is refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tools import console_script
+from tools.bench import RESULTS, machine
+from tools.reproduce import imitation
+from tools.reproduce.runs import TrainedRun, record_dataset, train_policy
+
+GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
+FINAL_ROWS = 3  # PPO iterations averaged for the value "at the budget" (one iteration is noisy)
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One finetuning experiment: the demonstrations its skills come from and the new tasks."""
+
+    name: str
+    demos: tuple[tuple[str, str], ...]  # (dataset folder, its tasks), one cloned model each
+    n_options: int  # options per cloned model
+    tasks: str
+
+
+@dataclass(frozen=True)
+class Method:
+    """How a method gets its skills: cloned with these `--policy.*` overrides, or none (flat)."""
+
+    key: str
+    name: str
+    overrides: dict[str, Any] | None
+
+
+SETTINGS = {
+    "s1": Setting("s1", (("craft_s1", imitation.S1_TASKS),), 3, "ADC,CAD,DCA"),
+    "s2": Setting("s2", (("craft_s2_ab", "AB,BA"), ("craft_s2_cd", "CD,DC")), 2, "BADC,ACBD,CABD"),
+}
+METHODS = (
+    Method("ocn", "OCN", {}),
+    Method("moe", "MoE", {"hierarchy": "moe"}),
+    Method("flat", "flat PPO", None),
+)
+REWARDS = ("sparse", "dense")
+
+
+def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
+    """The method's behaviour-cloned checkpoints for one seed, one per demonstration set.
+
+    S1's OCN is the imitation study's main variant, so both reproductions share those runs.
+    """
+    runs = []
+    for folder, tasks in setting.demos:
+        data = args.workdir / folder
+        record_dataset(data, tasks, f"local/{folder}", args.episodes_per_task, args.data_seed)
+        overrides = {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {})}
+        if setting.name == "s1" and method.name == "OCN":
+            run_dir = imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed)
+        else:
+            run_dir = args.workdir / "clone" / folder / method.key / f"seed{seed}"
+        runs.append(train_policy(imitation.train_settings(args), data, f"local/{folder}", run_dir, seed, overrides))
+    return runs
+
+
+def finetune_command(args: argparse.Namespace, setting: Setting, method: Method, reward: str, seed: int,
+                     clones: list[TrainedRun], out: Path) -> list[str]:
+    """The `ocn-finetune` call of one run (flat PPO: the same command with `--flat` and no checkpoint)."""
+    command = [console_script("ocn-finetune"), "--tasks", setting.tasks, "--reward", reward,
+               "--frames", str(args.frames), "--envs", str(args.envs), "--seed", str(seed), "--out", str(out)]
+    if method.overrides is None:
+        return command + ["--flat"]
+    return command + [word for run in clones for word in ("--checkpoint", str(run.checkpoint))]
+
+
+def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, reward: str, seed: int) -> dict[str, Any]:
+    """Clone (unless done), finetune (unless done) and read back one run's curve."""
+    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}" / f"seed{seed}"
+    clones = clone(args, setting, method, seed) if method.overrides is not None else []
+    command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
+    shown = " ".join(Path(word).name if word.startswith("/") else word for word in command)
+    summary_path, command_path = out / "run" / "finetune.json", out / "finetune_command.txt"
+    if command_path.exists() and command_path.read_text().strip() != shown:
+        raise SystemExit(f"{out} holds a run made by another command:\n  {command_path.read_text().strip()}\n"
+                         f"while this reproduction would run:\n  {shown}\nMove it away or pass another --workdir.")
+    if not summary_path.exists():
+        shutil.rmtree(out / "run", ignore_errors=True)
+        out.mkdir(parents=True, exist_ok=True)
+        command_path.write_text(shown + "\n")
+        print(f"finetuning {out}", flush=True)
+        with open(out / "finetune.log", "w") as log:
+            subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT)
+    with open(out / "run" / "curve.csv", newline="") as handle:
+        rows = [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)]
+    return {
+        "method": method.name, "reward": reward, "seed": seed, "command": shown,
+        "clone_wall_s": [run.train_wall_s for run in clones],
+        "summary": json.loads(summary_path.read_text()),
+        "curve": rows,
+    }
+
+
+def task_labels(setting: Setting) -> list[str]:
+    return setting.tasks.split(",")
+
+
+def at_budget(run: dict[str, Any], labels: list[str]) -> dict[str, float]:
+    """Mean return and success (overall and per task) over the run's last FINAL_ROWS iterations."""
+    last = run["curve"][-FINAL_ROWS:]
+    keys = ["mean_return", "success", *(f"success[{label}]" for label in labels)]
+    return {key: float(np.mean([row[key] for row in last])) for key in keys}
+
+
+def summarise(runs: list[dict[str, Any]], labels: list[str]) -> dict[str, dict[str, Any]]:
+    """Per method and reward: the value at the budget (mean and std over seeds) and the mean curve."""
+    summary: dict[str, dict[str, Any]] = {}
+    for method in METHODS:
+        for reward in REWARDS:
+            mine = [run for run in runs if run["method"] == method.name and run["reward"] == reward]
+            if not mine:
+                continue
+            finals = [at_budget(run, labels) for run in mine]
+            grid = np.linspace(0, min(run["curve"][-1]["frames"] for run in mine), GRID_POINTS)
+            curves = {}
+            for key in ("mean_return", "success", *(f"success[{label}]" for label in labels)):
+                values = np.array([np.interp(grid, [r["frames"] for r in run["curve"]], [r[key] for r in run["curve"]])
+                                   for run in mine])
+                curves[key] = {"mean": values.mean(0).round(4).tolist(), "std": values.std(0).round(4).tolist()}
+            summary[f"{method.name} | {reward}"] = {
+                "method": method.name, "reward": reward, "seeds": [run["seed"] for run in mine],
+                "at_budget": {key: {"mean": float(np.mean([f[key] for f in finals])),
+                                    "std": float(np.std([f[key] for f in finals]))} for key in finals[0]},
+                "frames_per_s": float(np.mean([run["summary"]["frames_per_s"] for run in mine])),
+                "curve_frames": grid.round(0).tolist(),
+                "curves": curves,
+            }
+    return summary
+
+
+def must_show(setting: Setting, summary: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The issue's checks for this setting, each with its measured values and whether it holds."""
+    labels, checks = task_labels(setting), []
+
+    def value(method: str, reward: str, key: str) -> float | None:
+        row = summary.get(f"{method} | {reward}")
+        return None if row is None else row["at_budget"][key]["mean"]
+
+    ocn_sparse = [value("OCN", "sparse", f"success[{label}]") for label in labels]
+    if None not in ocn_sparse:
+        bar = 0.9 if setting.name == "s1" else 0.8
+        checks.append({"check": f"OCN, sparse: success >= {bar} on each of {', '.join(labels)}",
+                       "value": min(ocn_sparse), "holds": min(ocn_sparse) >= bar})
+        for other in ("MoE", "flat PPO"):
+            theirs = value(other, "sparse", "success")
+            if theirs is not None:
+                ours = value("OCN", "sparse", "success")
+                checks.append({"check": f"sparse: {other}'s mean success below OCN's ({ours:.3f})",
+                               "value": theirs, "holds": theirs < ours})
+    ours = value("OCN", "dense", "mean_return")
+    baselines = [v for v in (value(m, "dense", "mean_return") for m in ("MoE", "flat PPO")) if v is not None]
+    if ours is not None and baselines and setting.name == "s1":
+        checks.append({"check": "dense: OCN's return at least twice the best baseline's",
+                       "value": ours / max(max(baselines), 1e-9), "holds": ours >= 2 * max(baselines)})
+    return checks
+
+
+def plot(setting: Setting, summary: dict[str, dict[str, Any]], path: Path) -> None:
+    """Curves like the paper's figures 4-5: one row per reward, success per task and the mean return,
+    each method's mean over seeds with a band of one standard deviation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import EngFormatter
+
+    labels = task_labels(setting)
+    keys = [*(f"success[{label}]" for label in labels), "mean_return"]
+    rewards = [reward for reward in REWARDS if any(row["reward"] == reward for row in summary.values())]
+    fig, axes = plt.subplots(len(rewards), len(keys), figsize=(3.2 * len(keys), 2.9 * len(rewards)), squeeze=False)
+    for r, reward in enumerate(rewards):
+        for c, key in enumerate(keys):
+            ax = axes[r][c]
+            for k, method in enumerate(METHODS):
+                row = summary.get(f"{method.name} | {reward}")
+                if row is None:
+                    continue
+                mean, std = np.array(row["curves"][key]["mean"]), np.array(row["curves"][key]["std"])
+                ax.plot(row["curve_frames"], mean, color=f"C{k}", label=method.name)
+                ax.fill_between(row["curve_frames"], mean - std, mean + std, color=f"C{k}", alpha=0.2)
+            ax.set_title(f"{reward}: {key.replace('success[', 'success ').rstrip(']')}", fontsize=9)
+            ax.xaxis.set_major_formatter(EngFormatter())
+            ax.grid(alpha=0.3)
+            if key != "mean_return":
+                ax.set_ylim(-0.02, 1.02)
+    axes[0][0].legend(fontsize=8)
+    fig.supxlabel("env frames")
+    fig.suptitle(f"Finetuning in Craft {setting.name.upper()} ({setting.tasks}): mean and std over seeds")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The human-readable results file."""
+    setting = SETTINGS[result["setting"]]
+    labels = task_labels(setting)
+    lines = [
+        f"# Finetuning on Craft {setting.name.upper()}: {setting.tasks}",
+        "",
+        f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
+        f"{result['date']}. Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
+        f"{setting.n_options} options per cloned model, cloned by `lerobot-train`; PPO through `ocn-finetune`, "
+        f"{result['settings']['frames']} env frames per run, {result['settings']['envs']} envs. "
+        f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
+        f"seeds. Runs finished: {result['runs_finished']} of {result['runs_planned']}; wall time of this "
+        f"invocation {result['wall_s'] / 60:.0f} min.",
+        "",
+        "## Checks",
+        "",
+        "| check | measured | holds |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {c['check']} | {c['value']:.3f} | {'yes' if c['holds'] else 'NO'} |" for c in result["must_show"]]
+    lines += ["", "## At the budget", "",
+              "| method | reward | seeds | mean return | success | " + " | ".join(labels) + " | PPO frames/s |",
+              "|---|---|---|---|---|" + "---|" * len(labels) + "---|"]
+    for row in result["summary"].values():
+        b = row["at_budget"]
+
+        def cell(key: str) -> str:
+            return f"{b[key]['mean']:.3f} ({b[key]['std']:.3f})"
+
+        per_task = " | ".join(cell(f"success[{label}]") for label in labels)
+        lines.append(f"| {row['method']} | {row['reward']} | {len(row['seeds'])} | {cell('mean_return')} | "
+                     f"{cell('success')} | {per_task} | {row['frames_per_s']:.0f} |")
+    lines += ["", f"Curves: `finetune_{setting.name}.png`.", ""]
+    return "\n".join(lines)
+
+
+def write_results(args: argparse.Namespace, setting: Setting, runs: list[dict[str, Any]], planned: int,
+                  wall_s: float) -> dict[str, Any]:
+    """`results/finetune_<setting>.{json,md,png}` from the runs finished so far."""
+    summary = summarise(runs, task_labels(setting))
+    result = {
+        "command": "ocn-reproduce " + " ".join(sys.argv[1:] if args.argv is None else args.argv),
+        "setting": setting.name,
+        "date": time.strftime("%Y-%m-%d"),
+        "machine": machine(),
+        "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k not in ("func", "argv")},
+        "runs_finished": len(runs),
+        "runs_planned": planned,
+        "summary": summary,
+        "must_show": must_show(setting, summary),
+        "runs": [{key: value for key, value in run.items() if key != "curve"} for run in runs],
+        "wall_s": round(wall_s, 1),
+    }
+    args.results.mkdir(parents=True, exist_ok=True)
+    stem = args.results / f"finetune_{setting.name}"
+    stem.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
+    stem.with_suffix(".md").write_text(markdown(result))
+    plot(setting, summary, stem.with_suffix(".png"))
+    return result
+
+
+def reproduce(args: argparse.Namespace) -> int:
+    """Every planned run in turn, seeds innermost last so that each method's first seed comes early."""
+    started = time.perf_counter()
+    setting = SETTINGS[args.experiment]
+    known = {method.key: method for method in METHODS}
+    unknown = sorted(set(args.methods) - set(known)) + sorted(set(args.rewards) - set(REWARDS))
+    if unknown:
+        raise SystemExit(f"ocn-reproduce: unknown method or reward {unknown}; methods are {sorted(known)}, "
+                         f"rewards {list(REWARDS)}.")
+    methods = [known[key] for key in args.methods]
+    planned = [(m, reward, seed) for seed in range(1, args.seeds + 1) for m in methods for reward in args.rewards]
+    runs: list[dict[str, Any]] = []
+    result: dict[str, Any] = {}
+    for method, reward, seed in planned:
+        runs.append(finetune_run(args, setting, method, reward, seed))
+        result = write_results(args, setting, runs, len(planned), time.perf_counter() - started)
+    print(markdown(result))
+    return 0
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """The `s1` and `s2` subcommands."""
+    for name, setting in SETTINGS.items():
+        parser = sub.add_parser(name, help=f"finetuning on {setting.tasks} over skills cloned from "
+                                f"{' and '.join(t for _, t in setting.demos)}",
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        parser.add_argument("--seeds", type=int, default=3)
+        parser.add_argument("--frames", type=int, default=300_000, help="env frames per PPO run (the budget)")
+        parser.add_argument("--envs", type=int, default=64, help="envs stepped together in PPO")
+        parser.add_argument("--rewards", type=lambda s: s.split(","), default=list(REWARDS),
+                            help="comma-separated: sparse,dense")
+        parser.add_argument("--methods", type=lambda s: s.split(","), default=[m.key for m in METHODS],
+                            help="comma-separated: " + ",".join(m.key for m in METHODS))
+        imitation.add_training_arguments(parser)
+        parser.add_argument("--results", type=Path, default=RESULTS)
+        parser.set_defaults(func=reproduce)
