@@ -123,6 +123,18 @@ class DialBatch:
         self.done[ids] = False
         return self.observe()
 
+    def set_qpos(self, env_ids: Sequence[int] | np.ndarray, qpos: np.ndarray) -> np.ndarray:
+        """Place envs' joints at ``qpos`` (one row per env) at rest, for scripted scenarios and tests;
+        press detection then judges the new fingertip at the next step. Returns all observations."""
+        ids = np.asarray(env_ids, dtype=np.int64).reshape(-1)
+        for i, row in zip(ids.tolist(), np.broadcast_to(qpos, (len(ids), N_JOINTS)), strict=True):
+            data = self.data[i]
+            data.qpos[:] = row
+            data.qvel[:] = 0.0
+            mujoco.mj_forward(self.model, data)
+        self._sync(ids)
+        return self.observe()
+
     def _pin(self, spec: PinSpec, rng: np.random.Generator) -> tuple[int, ...]:
         if spec is None:
             return sample_pin(rng, self.pin_length, self.digits)
