@@ -26,7 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from envs.dial.batch import CONTROL_DT, DialBatch
-from envs.dial.poses import FINGERS_CLOSED, HOVER_HEIGHT, dial_poses
+from envs.dial.poses import HOVER_HEIGHT, dial_poses
 from envs.dial.scene import GEARS, N_JOINTS
 
 KP = np.array([1000.0, 2000.0, 2000.0, 400.0, 400.0, 400.0, 5.0, 5.0, 5.0])

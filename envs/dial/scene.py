@@ -23,7 +23,6 @@ control in [-1, 1]. A `framepos` sensor reports the fingertip position.
 from __future__ import annotations
 
 import functools
-import hashlib
 from importlib import resources
 from pathlib import Path
 
@@ -133,10 +132,3 @@ def dial_model() -> mujoco.MjModel:
     """The compiled scene, built once per process and shared (read-only) by every env."""
     return build_spec().compile()
 
-
-def model_hash(model: mujoco.MjModel) -> str:
-    """Digest of everything the physics depends on, to key caches of derived data."""
-    h = hashlib.sha256()
-    for name in ("body_pos", "body_quat", "jnt_range", "dof_damping", "actuator_gear", "site_pos", "geom_size"):
-        h.update(np.ascontiguousarray(getattr(model, name)).tobytes())
-    return h.hexdigest()[:16]
