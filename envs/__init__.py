@@ -1,14 +1,17 @@
 """Environments of the OCN reference implementation, registered with gymnasium on import.
 
 Registration is skipped for ids already present, so importing (or reloading) twice is silent.
-`OCN/CraftLeRobot-v0` is Craft shaped for `lerobot-eval` (see envs.craft.lerobot_env); its entry
-point is imported only when it is made, so registering it does not import LeRobot.
+`OCN/CraftLeRobot-v0` and `OCN/DialLeRobot-v0` are Craft and Dial shaped for `lerobot-eval` (see
+envs.lerobot_env); entry points are imported only when an env is made, so registering them imports
+neither LeRobot nor MuJoCo.
 """
 
 from gymnasium.envs.registration import register, registry
 
 CRAFT_ENV_IDS = {"OCN/Craft-v0": "paper", "OCN/CraftFull-v0": "full"}
 CRAFT_LEROBOT_ENV_ID = "OCN/CraftLeRobot-v0"
+DIAL_ENV_ID = "OCN/Dial-v0"
+DIAL_LEROBOT_ENV_ID = "OCN/DialLeRobot-v0"
 
 for _env_id, _mode in CRAFT_ENV_IDS.items():
     if _env_id not in registry:
@@ -21,3 +24,9 @@ for _env_id, _mode in CRAFT_ENV_IDS.items():
 
 if CRAFT_LEROBOT_ENV_ID not in registry:
     register(id=CRAFT_LEROBOT_ENV_ID, entry_point="envs.craft.lerobot_env:make_lerobot_craft_env")
+
+if DIAL_ENV_ID not in registry:
+    register(id=DIAL_ENV_ID, entry_point="envs.dial.env:DialEnv", vector_entry_point="envs.dial.env:DialVectorEnv")
+
+if DIAL_LEROBOT_ENV_ID not in registry:
+    register(id=DIAL_LEROBOT_ENV_ID, entry_point="envs.dial.lerobot_env:make_lerobot_dial_env")

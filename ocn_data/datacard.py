@@ -8,10 +8,12 @@ for the same dataset.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import jinja2
 
+from ocn_data.episodes_table import read_info
 from ocn_data.provenance import PROVENANCE, load_provenance
 
 DATACARDS = Path(__file__).resolve().parent.parent / "datacards"
@@ -41,54 +43,90 @@ def craft_observation_layout() -> list[dict]:
     ]
 
 
-def craft_card_context(root: str | Path, repo_id: str) -> dict:
-    """What `datacards/craft.md` needs, read back from a dataset that record_demos wrote.
+def recording_context(root: str | Path, repo_id: str, task_code: Callable[[str, dict], str]) -> dict:
+    """The card context every world shares, read back from a dataset that record_demos wrote.
 
     Publishing a dataset under a new repo id, or annotating a copy of it, rebuilds its card from
     what is on disk (info, episode table, provenance) instead of trusting a README.md that names
-    another repo id or predates a change.
+    another repo id or predates a change. `task_code(task string, last session)` is the task's
+    compact form.
     """
     import pyarrow.parquet as pq
-
-    from envs.craft.observation import OBS_DIM
-    from envs.craft.world import parse_task, task_code
-    from ocn_data.craft_recorder import IMAGE_KEY
 
     root = Path(root)
     sessions = load_provenance(root)["sessions"]
     if not sessions:
-        raise FileNotFoundError(
-            f"{root} has no {PROVENANCE}: only datasets recorded with record_demos have a Craft card."
-        )
-    info = json.loads((root / "meta" / "info.json").read_text())
-    mode = sessions[-1]["mode"]
+        raise FileNotFoundError(f"{root} has no {PROVENANCE}: only datasets recorded with record_demos have a card.")
+    info = read_info(root)
     tasks = pq.read_table(root / "meta" / "tasks.parquet").to_pandas().sort_values("task_index")
     first_tasks = [
         episode_tasks[0]
         for file in sorted((root / "meta" / "episodes").glob("*/*.parquet"))
         for episode_tasks in pq.read_table(file, columns=["tasks"])["tasks"].to_pylist()
     ]
-    image = info["features"].get(IMAGE_KEY)
     splits = info.get("splits") or {}
     return {
+        "info": info,
+        "session": sessions[-1],
         "repo_id": repo_id,
-        "mode": mode,
         "reward": sessions[-1]["reward"],
         "fps": info["fps"],
         "total_episodes": info["total_episodes"],
         "total_frames": info["total_frames"],
         "splits": {"train": splits.get("train", "0:0"), "val": splits.get("val")},
-        "image_shape": tuple(image["shape"]) if image else None,
         "tasks": [
-            {"description": task, "code": task_code(parse_task(task, mode)), "episodes": first_tasks.count(task)}
+            {"description": task, "code": task_code(task, sessions[-1]), "episodes": first_tasks.count(task)}
             for task in tasks.index
         ],
-        "obs_dim": OBS_DIM,
-        "obs_layout": craft_observation_layout(),
         "failures": sum(s["expert_failures"] for s in sessions),
         "seed": ", ".join(str(s["seed"]) for s in sessions),
         "commands": [s["command"] for s in sessions],
     }
+
+
+def craft_card_context(root: str | Path, repo_id: str) -> dict:
+    """What `datacards/craft.md` needs."""
+    from envs.craft.observation import OBS_DIM
+    from envs.craft.world import parse_task, task_code
+    from ocn_data.recorder import IMAGE_KEY
+
+    context = recording_context(root, repo_id, lambda task, session: task_code(parse_task(task, session["mode"])))
+    image = context["info"]["features"].get(IMAGE_KEY)
+    return context | {
+        "mode": context["session"]["mode"],
+        "image_shape": tuple(image["shape"]) if image else None,
+        "obs_dim": OBS_DIM,
+        "obs_layout": craft_observation_layout(),
+    }
+
+
+def dial_card_context(root: str | Path, repo_id: str) -> dict:
+    """What `datacards/dial.md` needs: the shared context plus the scene's constants."""
+    from envs.dial import DIGIT_CELLS, FRAME_SKIP, GEARS, PRESS_L1, RELEASE_L1, key_positions, parse_pin, pin_code
+    from envs.dial.expert import NOISE_HOLD
+    from envs.dial.task import STEPS_PER_DIGIT
+
+    context = recording_context(root, repo_id, lambda task, session: pin_code(parse_pin(task)))
+    session = context["session"]
+    layout = [[" "] * 3 for _ in range(4)]
+    for digit, (row, column) in enumerate(DIGIT_CELLS):
+        layout[row][column] = str(digit)
+    return context | {
+        "digits": session["digits"],
+        "pin_length": session["pin_length"],
+        "noise_levels": session["noise_levels"],
+        "noise_hold": NOISE_HOLD,
+        "keys": [{"digit": d, "point": [round(float(v), 3) for v in p]} for d, p in enumerate(key_positions())],
+        "pad_rows": [" ".join(row) for row in layout],
+        "gears": GEARS,
+        "frame_skip": FRAME_SKIP,
+        "press_l1": PRESS_L1,
+        "release_l1": RELEASE_L1,
+        "steps_per_digit": STEPS_PER_DIGIT,
+    }
+
+
+CARD_CONTEXTS = {"craft": craft_card_context, "dial": dial_card_context}
 
 
 def annotation_section(annotation: dict) -> str:
@@ -131,7 +169,10 @@ def annotation_section(annotation: dict) -> str:
 
 def dataset_card(root: str | Path, repo_id: str) -> str:
     """The README.md of a record_demos dataset published (or annotated) as `repo_id`."""
-    text = render_card("craft", craft_card_context(root, repo_id))
+    world = read_info(Path(root)).get("robot_type") or "craft"
+    if world not in CARD_CONTEXTS:
+        raise ValueError(f"{root} holds a {world!r} dataset; cards exist for {', '.join(CARD_CONTEXTS)} datasets.")
+    text = render_card(world, CARD_CONTEXTS[world](root, repo_id))
     annotation = Path(root) / ANNOTATION
     if annotation.is_file():
         text = text.rstrip("\n") + "\n\n" + annotation_section(json.loads(annotation.read_text()))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -17,10 +18,17 @@ from tqdm import tqdm
 
 from envs.craft.render import TILE
 from envs.craft.world import GRID_SIZE, MODES, REWARDS, parse_task_list, task_description
-from ocn_data.craft_recorder import FPS, CraftRecorder, craft_features
+from envs.dial.expert import NOISE_LEVELS
+from envs.dial.task import parse_digits, parse_pin_list
+from envs.dial.task import task_description as dial_task_description
+from ocn_data.craft_recorder import FPS as CRAFT_FPS
+from ocn_data.craft_recorder import CraftRecorder, craft_features
+from ocn_data.dial_recorder import FPS as DIAL_FPS
+from ocn_data.dial_recorder import DialRecorder, dial_features, random_pins
 from ocn_data.datacard import dataset_card
 from ocn_data.lerobot_writer import ColumnarDatasetWriter, DatasetExistsError
 from ocn_data.mcap_log import DemoMcapWriter, check_new_log
+from ocn_data.recorder import ExpertRecorder
 from ocn_data.provenance import load_provenance, write_provenance
 
 
@@ -31,20 +39,23 @@ def build_parser() -> argparse.ArgumentParser:
         "card and optionally an MCAP log. Ground-truth subtask labels are kept for evaluation only.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--env", choices=["craft"], default="craft", help="world to record in")
+    p.add_argument("--env", choices=["craft", "dial"], default="craft", help="world to record in")
     p.add_argument(
         "--tasks",
-        required=True,
-        help="comma-separated tasks: subtask letters (AC,CD,DA) or, in full mode, named tasks (make bed,get gem)",
+        help="comma-separated tasks. Craft (required): subtask letters (AC,CD,DA) or, in full mode, named tasks "
+        "(make bed,get gem). Dial: PINs (12,48) instead of random ones",
     )
-    p.add_argument("--episodes-per-task", type=int, required=True, help="successful episodes to record per task")
+    p.add_argument("--episodes-per-task", type=int, help="successful episodes to record per task in --tasks")
+    p.add_argument("--episodes", type=int, help="Dial: successful episodes of random PINs to record")
+    p.add_argument("--pin-length", type=int, default=2, help="Dial: digits per random PIN")
+    p.add_argument("--digits", default="1,2,4,8", help="Dial: digit set random PINs are drawn from")
     p.add_argument("--root", type=Path, required=True, help="dataset directory (must not exist unless --resume)")
     p.add_argument("--repo-id", required=True, help="dataset id, ORG/NAME")
     p.add_argument("--seed", type=int, default=0, help="base seed; every episode attempt gets its own map seed")
     p.add_argument("--reward", choices=REWARDS, default="dense")
-    p.add_argument("--mode", choices=MODES, default="paper", help="Craft: the paper's 4 resources or the full recipe book")
+    p.add_argument("--mode", choices=MODES, help="Craft: the paper's 4 resources or the full recipe book (default paper)")
     p.add_argument("--mcap", type=Path, help="also write every step to this MCAP file (must not exist)")
-    p.add_argument("--video", action="store_true", help="also store rendered frames as the video feature observation.image")
+    p.add_argument("--video", action="store_true", help="Craft: also store rendered frames as the video feature observation.image")
     p.add_argument(
         "--subtask-annotations",
         action="store_true",
@@ -53,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--resume", action="store_true", help="append to the existing dataset at --root")
     p.add_argument("--val-fraction", type=float, default=0.2, help="last fraction of episodes that forms the val split")
-    p.add_argument("--batch-size", type=int, default=256, help="envs stepped together (16 with --video)")
+    p.add_argument("--batch-size", type=int, help="envs stepped together (Craft 256, 16 with --video; Dial 64)")
     p.add_argument("--chunk-episodes", type=int, default=2000, help="episodes per written data file")
     return p
 
@@ -63,44 +74,93 @@ def _write_card_and_provenance(root: Path, repo_id: str, provenance: dict) -> No
     (root / "README.md").write_text(dataset_card(root, repo_id))
 
 
+def _positive(value: int | None, flag: str) -> int:
+    if value is None or value < 1:
+        raise ValueError(f"{flag} must be given and >= 1, got {value}")
+    return value
+
+
+def _craft_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable[[], ExpertRecorder], dict, int, dict]:
+    """Craft's recorder (made later, once the output is known to be writable), features, fps and session record."""
+    if args.tasks is None:
+        raise ValueError("--env craft needs --tasks (e.g. --tasks AC,CD,DA)")
+    if args.episodes is not None:
+        raise ValueError("--episodes is for Dial's random PINs; Craft records --episodes-per-task")
+    mode = args.mode or "paper"
+    tasks = parse_task_list(args.tasks, mode)
+    episodes_per_task = _positive(args.episodes_per_task, "--episodes-per-task")
+    image_shape = (GRID_SIZE * TILE, GRID_SIZE * TILE, 3) if args.video else None
+    session = {"mode": mode, "tasks": [task_description(t) for t in tasks]}
+
+    def make() -> ExpertRecorder:
+        return CraftRecorder(
+            tasks, episodes_per_task, mode=mode, reward=args.reward, seed=args.seed, first_attempt=first_attempt,
+            batch_size=args.batch_size or (16 if args.video else 256), video=args.video,
+        )
+
+    return make, craft_features(image_shape), CRAFT_FPS, session
+
+
+def _dial_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable[[], ExpertRecorder], dict, int, dict]:
+    """Dial's recorder maker, features, fps and session record: given PINs, or random ones."""
+    if args.video or args.mode:
+        raise ValueError("--video and --mode are Craft options; Dial records states only")
+    digits = parse_digits(args.digits)
+    if args.tasks is not None:
+        if args.episodes is not None:
+            raise ValueError("give either --tasks with --episodes-per-task, or --episodes for random PINs")
+        given = parse_pin_list(args.tasks)
+        episodes_per_task = _positive(args.episodes_per_task, "--episodes-per-task")
+        pins, pin_length = [pin for _ in range(episodes_per_task) for pin in given], None
+        tasks = {"tasks": [dial_task_description(pin) for pin in given]}
+    else:
+        if args.episodes_per_task is not None:
+            raise ValueError("--episodes-per-task needs --tasks; random PINs take --episodes")
+        pin_length = _positive(args.pin_length, "--pin-length")
+        pins = random_pins(_positive(args.episodes, "--episodes"), pin_length, digits, args.seed, first_attempt)
+        tasks = {}
+    session = {"digits": list(digits), "pin_length": pin_length, "noise_levels": list(NOISE_LEVELS), **tasks}
+
+    def make() -> ExpertRecorder:
+        return DialRecorder(
+            pins, reward=args.reward, seed=args.seed, first_attempt=first_attempt, batch_size=args.batch_size or 64
+        )
+
+    return make, dial_features(), DIAL_FPS, session
+
+
+SETUPS = {"craft": _craft_setup, "dial": _dial_setup}
+
+
 def record(args: argparse.Namespace) -> int:
     """Run one recording session; returns the process exit code."""
-    tasks = parse_task_list(args.tasks, args.mode)
-    if args.episodes_per_task < 1:
-        raise ValueError(f"--episodes-per-task must be >= 1, got {args.episodes_per_task}")
+    provenance = load_provenance(args.root) if args.resume else {"sessions": []}
+    first_attempt = sum(s["attempts"] for s in provenance["sessions"])
+    make_recorder, features, fps, world_session = SETUPS[args.env](args, first_attempt)
     if args.mcap is not None:
         check_new_log(args.mcap)
-    provenance = load_provenance(args.root) if args.resume else {"sessions": []}
-    if args.resume and provenance["sessions"] and provenance["sessions"][-1]["mode"] != args.mode:
-        raise ValueError(f"--resume: the dataset was recorded in mode {provenance['sessions'][-1]['mode']!r}")
-    video = args.video
-    image_shape = (GRID_SIZE * TILE, GRID_SIZE * TILE, 3) if video else None
+    if provenance["sessions"]:
+        last = provenance["sessions"][-1]
+        if last.get("env", "craft") != args.env:
+            raise ValueError(f"--resume: the dataset was recorded in env {last.get('env', 'craft')!r}")
+        if last.get("mode") != world_session.get("mode"):
+            raise ValueError(f"--resume: the dataset was recorded in mode {last['mode']!r}")
     writer = ColumnarDatasetWriter(
-        args.root, args.repo_id, FPS, craft_features(image_shape),
+        args.root, args.repo_id, fps, features,
         resume=args.resume,
-        robot_type="craft",
+        robot_type=args.env,
         language=args.subtask_annotations,
     )
-    first_attempt = sum(s["attempts"] for s in provenance["sessions"])
-    recorder = CraftRecorder(
-        tasks,
-        args.episodes_per_task,
-        mode=args.mode,
-        reward=args.reward,
-        seed=args.seed,
-        first_attempt=first_attempt,
-        batch_size=16 if video and args.batch_size == 256 else args.batch_size,
-        video=video,
-    )
-    mcap = DemoMcapWriter(args.mcap, FPS, craft_features()["observation.state"]["names"]) if args.mcap else None
+    recorder = make_recorder()
+    mcap = DemoMcapWriter(args.mcap, fps, features["observation.state"]["names"]) if args.mcap else None
     start_episodes = writer.total_episodes
     session = {
         "command": shlex.join(["record_demos", *sys.argv[1:]]),
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "env": args.env,
         "seed": args.seed,
-        "mode": args.mode,
         "reward": args.reward,
-        "tasks": [task_description(t) for t in tasks],
+        **world_session,
     }
     interrupted = False
     bar = tqdm(total=recorder.total, unit="ep", desc=f"record {args.repo_id}")

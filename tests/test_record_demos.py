@@ -216,3 +216,76 @@ def test_video_feature_decodes(tmp_path):
     frame = ds[ds.meta.episodes[1]["dataset_from_index"]]["observation.image"]
     assert frame.shape == (3, 160, 160)
     assert 0.0 <= frame.min() and frame.max() <= 1.0 and frame.std() > 0.05
+
+
+@pytest.fixture(scope="module")
+def dial_recorded(tmp_path_factory) -> tuple[Path, Path]:
+    base = tmp_path_factory.mktemp("dial")
+    root, mcap = base / "ds", base / "dial.mcap"
+    run_record("--env", "dial", "--pin-length", "2", "--digits", "1,2,4,8", "--episodes", "12", "--root", str(root),
+               "--repo-id", "local/dial", "--seed", "4", "--mcap", str(mcap), "--chunk-episodes", "5")
+    return root, mcap
+
+
+def test_dial_dataset_reads_back_in_lerobot(dial_recorded):
+    root, _ = dial_recorded
+    ds = LeRobotDataset("local/dial", root=root)
+    assert ds.num_episodes == 12 and ds.meta.info.splits == {"train": "0:10", "val": "10:12"}
+    assert ds.meta.robot_type == "dial" and ds.fps == 25
+    features = ds.meta.features
+    assert (features["observation.state"]["dtype"], tuple(features["observation.state"]["shape"])) == ("float32", (39,))
+    assert (features["action"]["dtype"], tuple(features["action"]["shape"])) == ("float32", (9,))
+    assert {"next.reward", "next.done", "subtask.index", "subtask.id", "subtask.end"} <= set(features)
+    item = ds[0]
+    assert item["observation.state"].shape == (39,) and item["action"].shape == (9,)
+
+    table = ds.hf_dataset.with_format("numpy")
+    episode = np.asarray(table["episode_index"])
+    action = np.asarray(table["action"])
+    assert np.abs(action).max() <= 1.0
+    for e in range(ds.num_episodes):
+        rows = episode == e
+        pin = [int(part.split()[1]) for part in ds.meta.episodes[e]["tasks"][0].split(", ")]
+        assert len(pin) == 2 and set(pin) <= {1, 2, 4, 8} and pin[0] != pin[1]
+        assert np.asarray(table["next.reward"])[rows].sum() == 2
+        ids = np.asarray(table["subtask.id"])[rows]
+        assert ids[0] == pin[0] and ids[-1] == pin[1]
+        ends = np.flatnonzero(np.asarray(table["subtask.end"])[rows])
+        assert len(ends) == 2 and ends[-1] == rows.sum() - 1
+        # the last frame's fingertip is about to press the last digit's key
+        state = np.asarray(table["observation.state"])[rows]
+        assert np.abs(state[-1, 9 + 3 * pin[1] : 12 + 3 * pin[1]]).sum() < 0.1
+
+
+def test_dial_mcap_and_card(dial_recorded):
+    root, mcap = dial_recorded
+    ds = LeRobotDataset("local/dial", root=root)
+    topics = read_mcap_messages(mcap)
+    assert {k: len(v) for k, v in topics.items()} == dict.fromkeys(("/observation", "/action", "/reward", "/subtask"), ds.num_frames)
+    np.testing.assert_allclose(topics["/observation"][0]["state"], ds[0]["observation.state"].numpy(), rtol=1e-6)
+    np.testing.assert_allclose(topics["/action"][0]["action"], ds[0]["action"].numpy(), rtol=1e-6)
+    assert topics["/subtask"][0]["subtask"] == ds.meta.episodes[0]["tasks"][0].split(", ")[0]
+    card = DatasetCard.load(root / "README.md")
+    assert "dial" in card.data.tags
+    assert "record_demos --env dial --pin-length 2 --digits 1,2,4,8 --episodes 12" in card.text
+    assert "random, 2 digits from 1, 2, 4, 8" in card.text and "| press " in card.text
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--episodes", "0"], "--episodes must be given and >= 1"),
+        (["--episodes", "3", "--digits", "1"], "at least two distinct"),
+        (["--episodes", "3", "--video"], "Craft options"),
+        (["--tasks", "12,1x", "--episodes-per-task", "2"], "PIN of digits"),
+        (["--tasks", "12", "--episodes", "2"], "either --tasks"),
+    ],
+)
+def test_dial_bad_input_is_a_one_line_error(tmp_path, capsys, args, message):
+    from ocn_data.record_demos import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--env", "dial", "--root", str(tmp_path / "new"), "--repo-id", "local/x", *args])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "new").exists()

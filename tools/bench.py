@@ -11,7 +11,11 @@ latency.
 
 `ocn-bench view` times `ocn-view` writing an .rrd of 50 validation episodes with a trained
 checkpoint, as a whole subprocess (interpreter start and imports included) and as the logging
-alone that it reports. Results carry the machine they ran on.
+alone that it reports.
+
+`ocn-bench dial` measures Dial env steps per second, the env's physics rate against bare
+`mujoco.mj_step` on the same model and trajectory, and the expert's success over 200 two-digit
+PINs, noise-free and with the DART noise it records with. Results carry the machine they ran on.
 """
 
 from __future__ import annotations
@@ -166,6 +170,131 @@ def _markdown(r: dict) -> str:
         "LeRobot v3.0 dataset with per-episode statistics and the dataset card; of each, "
         f"{r['record_demos_import_s']:.1f} s is a fresh interpreter importing `record_demos` "
         "(LeRobot and torch with it).\n"
+    )
+
+
+def bench_dial_physics(n_steps: int) -> dict:
+    """Dial env steps per second, and the env's physics rate against bare `mj_step` replaying the very
+    same controls from the same start (so both integrate the identical trajectory, contacts included)."""
+    import mujoco
+
+    from envs.dial import FRAME_SKIP, DialEnv, DialVectorEnv
+
+    controls = np.random.default_rng(0).uniform(-0.3, 0.3, size=(n_steps, 9))
+    env = DialEnv(task="12", max_steps=10**9)
+    env.reset(seed=0)
+    start_qpos = env.batch.data[0].qpos.copy()
+    counter = iter(range(10**12))
+
+    def env_step() -> None:
+        env.step(controls[next(counter) % n_steps])
+
+    def env_run() -> None:
+        env.reset(seed=0)
+        for u in controls:
+            env.step(u)
+
+    model = env.batch.model
+    data = mujoco.MjData(model)
+
+    def bare_run() -> None:
+        mujoco.mj_resetData(model, data)
+        data.qpos[:] = start_qpos
+        for u in controls:
+            data.ctrl[:] = u
+            mujoco.mj_step(model, data, nstep=FRAME_SKIP)
+
+    env_rate = bare_rate = 0.0
+    for _ in range(5):  # interleaved, best of 5 each: both see the same load on a shared machine
+        env_rate = max(env_rate, _rate(env_run, 1, n_steps, repeats=1))
+        bare_rate = max(bare_rate, _rate(bare_run, 1, n_steps, repeats=1))
+    vec = DialVectorEnv(16, task="12", max_steps=10**9)
+    vec.reset(seed=0)
+    vec_controls = np.random.default_rng(1).uniform(-0.3, 0.3, size=(64, 16, 9))
+
+    def vector() -> None:
+        vec.step(vec_controls[next(counter) % 64])
+
+    return {
+        "frame_skip": FRAME_SKIP,
+        "single_env_steps_per_s": _rate(env_step, n_steps, 1),
+        "vector_env_16_steps_per_s": _rate(vector, n_steps // 16, 16),
+        "replay_env_steps_per_s": env_rate,
+        "replay_bare_mj_step_env_steps_per_s": bare_rate,
+        "bare_mj_step_physics_steps_per_s": bare_rate * FRAME_SKIP,
+        "physics_ratio": env_rate / bare_rate,
+        "wrapper_overhead": 1.0 - env_rate / bare_rate,
+    }
+
+
+def bench_dial_expert(pins: int, noise_levels: tuple[float, ...]) -> dict:
+    """Success of the Dial expert on `pins` random two-digit PINs from 1, 2, 4, 8, all run as one batch."""
+    from envs.dial import DialBatch, DialExpert, sample_pin
+
+    rng = np.random.default_rng(2024)
+    tasks = [sample_pin(rng, 2, (1, 2, 4, 8)) for _ in range(pins)]
+    batch = DialBatch(pins)
+    batch.reset(seeds=list(range(pins)), tasks=tasks)
+    expert = DialExpert(batch, noise_levels)
+    expert.reset(seeds=list(range(pins)))
+    success = np.zeros(pins, dtype=bool)
+    start = time.perf_counter()
+    while not batch.done.all():
+        success |= batch.step(expert.perturb(expert.act()))[2]
+    wall = time.perf_counter() - start
+    steps = batch.t[success]
+    return {
+        "pins": pins,
+        "noise_levels": list(noise_levels),
+        "success": float(success.mean()),
+        "failed": [list(tasks[i]) for i in np.flatnonzero(~success)],
+        "steps_median": float(np.median(steps)),
+        "steps_p99": float(np.percentile(steps, 99)),
+        "steps_max": int(steps.max()),
+        "step_limit": int(batch.max_steps[0]),
+        "wall_s": wall,
+    }
+
+
+def run_dial_bench(args: argparse.Namespace) -> None:
+    from envs.dial.expert import NOISE_LEVELS
+
+    result = {
+        "benchmark": "ocn-bench dial",
+        "machine": machine(),
+        "note": args.note,
+        "env": bench_dial_physics(args.steps),
+        "expert": bench_dial_expert(args.pins, (0.0,)),
+        "expert_dart": bench_dial_expert(args.pins, NOISE_LEVELS),
+    }
+    _write(result, Path(args.out), _dial_markdown(result))
+
+
+def _dial_markdown(r: dict) -> str:
+    m, e = r["machine"], r["env"]
+    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    rows = "".join(
+        f"| expert success, {x['pins']} random two-digit PINs from 1, 2, 4, 8, {name} | **{x['success']:.3f}** "
+        f"(median {x['steps_median']:.0f} steps, p99 {x['steps_p99']:.0f}, max {x['steps_max']} of {x['step_limit']}) |\n"
+        for name, x in (("noise-free", r["expert"]), ("with DART noise as recorded (levels 0, 0.2, 0.3)", r["expert_dart"]))
+    )
+    return (
+        "# Dial env speed and expert success\n\n"
+        f"Command: `ocn-bench dial`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}.\n\n"
+        f"{conditions}"
+        "| what | result |\n|---|---|\n"
+        f"| one `DialEnv` (gymnasium API), random controls | {e['single_env_steps_per_s']:,.0f} env steps/s "
+        f"({e['single_env_steps_per_s'] * e['frame_skip']:,.0f} physics steps/s) |\n"
+        f"| 16 envs, `DialVectorEnv.step` | {e['vector_env_16_steps_per_s']:,.0f} env steps/s |\n"
+        f"| bare `mujoco.mj_step(nstep={e['frame_skip']})`, same model, same controls and start | "
+        f"{e['replay_bare_mj_step_env_steps_per_s']:,.0f} env steps/s ({e['bare_mj_step_physics_steps_per_s']:,.0f} physics steps/s) |\n"
+        f"| `DialEnv` replaying those controls | {e['replay_env_steps_per_s']:,.0f} env steps/s |\n"
+        f"| physics rate of the env / bare `mj_step` | **{e['physics_ratio']:.3f}** (wrapper overhead "
+        f"{e['wrapper_overhead']:.1%}; goal: under 20%) |\n"
+        f"{rows}\n"
+        "The replay rows integrate the identical trajectory (same start pose, same controls), so their ratio is "
+        "the cost of the env around the physics: observation, press detection, rewards, gymnasium API. "
+        "The replay timings are interleaved, best of 5 each; the other rates are the best of 3.\n"
     )
 
 
@@ -363,6 +492,12 @@ def main(argv: list[str] | None = None) -> None:
     train.add_argument("--out", default=str(RESULTS / "bench_train.json"))
     train.add_argument("--note", default="", help="conditions of the run, stored with the results")
     train.set_defaults(func=run_train_bench)
+    dial = sub.add_parser("dial", help="Dial env steps/s, its physics rate against bare mj_step, expert success")
+    dial.add_argument("--steps", type=int, default=2000, help="env steps per timing")
+    dial.add_argument("--pins", type=int, default=200, help="random two-digit PINs for the expert success rate")
+    dial.add_argument("--out", default=str(RESULTS / "bench_dial.json"))
+    dial.add_argument("--note", default="", help="conditions of the run, stored with the results")
+    dial.set_defaults(func=run_dial_bench)
     view = sub.add_parser("view", help="ocn-view writing an .rrd of 50 episodes with a trained checkpoint")
     view.add_argument("--root", default="outputs/reproduce/craft_s1", help="a recorded Craft dataset")
     view.add_argument("--repo-id", default="local/craft_s1")

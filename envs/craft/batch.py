@@ -31,6 +31,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from envs.batching import env_rng, reset_ids
 from envs.craft.layout import sample_map
 from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING, INVENTORY, INVENTORY_FIRST_KIND, OBS_DIM
 from envs.craft.world import (
@@ -110,19 +111,13 @@ class CraftBatch:
         ``seeds[i]`` reseeds env ``env_ids[i]``'s Generator; ``None`` (or no seeds) continues it.
         ``tasks[i]`` is a subtask-id tuple or a task string; no tasks keeps each env's task.
         """
-        ids = self._arange if env_ids is None else np.asarray(env_ids, dtype=np.int64).reshape(-1)
-        if seeds is not None and len(seeds) != len(ids):
-            raise ValueError(f"got {len(seeds)} seeds for {len(ids)} envs")
+        ids = reset_ids(self.num_envs, env_ids, seeds=seeds, tasks=tasks)
         if tasks is not None:
-            if len(tasks) != len(ids):
-                raise ValueError(f"got {len(tasks)} tasks for {len(ids)} envs")
             self._set_tasks(ids, tasks)
         elif (self.task_len[ids] == 0).any():
             raise ValueError("the first reset of an env must give its task")
         for k, i in enumerate(ids.tolist()):
-            seed = None if seeds is None else seeds[k]
-            if seed is not None or self.rngs[i] is None:
-                self.rngs[i] = np.random.default_rng(None if seed is None else int(seed))
+            self.rngs[i] = env_rng(self.rngs[i], None if seeds is None else seeds[k])
             grid, agent, facing = sample_map(self.rngs[i], self.mode)
             self.grid[i] = grid
             self.pos[i] = divmod(agent, GRID_SIZE)

@@ -12,9 +12,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from gymnasium.vector import AutoresetMode, VectorEnv
-from gymnasium.vector.utils import batch_space
+from gymnasium.vector import AutoresetMode
 
+from envs.batch_vector import BatchVectorEnv
 from envs.craft.batch import CraftBatch
 from envs.craft.observation import OBS_DIM, OBS_HIGH
 from envs.craft.render import render_batch
@@ -92,7 +92,7 @@ class CraftEnv(gym.Env):
         return render_batch(b.grid, b.pos, b.facing)[0]
 
 
-class CraftVectorEnv(VectorEnv):
+class CraftVectorEnv(BatchVectorEnv):
     """``num_envs`` Craft envs stepped as one batch, with next-step autoreset.
 
     ``task`` is one task string for all envs or one per env. Infos are dicts of arrays:
@@ -110,70 +110,16 @@ class CraftVectorEnv(VectorEnv):
         max_steps: int | None = None,
         render_mode: str | None = None,
     ):
-        self.num_envs = num_envs
-        self.batch = CraftBatch(num_envs, mode=mode, reward=reward, max_steps=max_steps)
         self.mode = mode
-        self._set_tasks(task)
         self.render_mode = _check_render_mode(render_mode)
-        self.single_observation_space = craft_observation_space()
-        self.single_action_space = spaces.Discrete(N_ACTIONS)
-        self.observation_space = batch_space(self.single_observation_space, num_envs)
-        self.action_space = batch_space(self.single_action_space, num_envs)
-        self._autoreset = np.zeros(num_envs, dtype=bool)
+        batch = CraftBatch(num_envs, mode=mode, reward=reward, max_steps=max_steps)
+        self._setup(batch, task, craft_observation_space(), spaces.Discrete(N_ACTIONS))
 
-    def _set_tasks(self, task: str | Sequence[str]) -> None:
-        """One task for all envs or one per env; takes effect at the next reset of each env."""
-        tasks = [task] * self.num_envs if isinstance(task, str) else list(task)
-        if len(tasks) != self.num_envs:
-            raise ValueError(f"got {len(tasks)} tasks for {self.num_envs} envs")
-        self.subtasks = [parse_task(t, self.mode) for t in tasks]
-        self.task_descriptions = np.array([task_description(s) for s in self.subtasks], dtype=object)
+    def _parse_task(self, task: str) -> tuple[int, ...]:
+        return parse_task(task, self.mode)
 
-    def reset(
-        self, *, seed: int | Sequence[int | None] | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """Reset all envs, or those in ``options["reset_mask"]``; env i gets seed ``seed + i``.
-
-        ``seed`` may also be a list with one seed (or None) per env; ``options["task"]`` sets
-        new tasks (one string or one per env).
-        """
-        options = options or {}
-        if isinstance(seed, (int, np.integer)):
-            super().reset(seed=int(seed))
-            seeds = [int(seed) + i for i in range(self.num_envs)]
-        else:
-            seeds = [None] * self.num_envs if seed is None else list(seed)
-        if "task" in options:
-            self._set_tasks(options["task"])
-        mask = np.asarray(options.get("reset_mask", np.ones(self.num_envs, dtype=bool)), dtype=bool)
-        ids = np.flatnonzero(mask)
-        self.batch.reset(
-            seeds=[seeds[i] for i in ids.tolist()], tasks=[self.subtasks[i] for i in ids.tolist()], env_ids=ids
-        )
-        self._autoreset[ids] = False
-        b = self.batch
-        info = {
-            "subtask_index": b.progress.copy(),
-            "progress": b.progress.copy(),
-            "is_success": b.progress == b.task_len,
-            "task": self.task_descriptions.copy(),
-        }
-        return b.observe(), info
-
-    def step(
-        self, actions: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-        """Step all envs; envs that ended on the previous step are reset instead (their action is ignored)."""
-        obs, reward, terminated, truncated, info = self.batch.step(actions)
-        if self._autoreset.any():
-            ids = np.flatnonzero(self._autoreset)
-            obs = self.batch.reset(tasks=[self.subtasks[i] for i in ids.tolist()], env_ids=ids)
-            info["subtask_index"][ids] = 0
-            info["progress"][ids] = 0
-            info["is_success"][ids] = False
-        self._autoreset = terminated | truncated
-        info["task"] = self.task_descriptions.copy()
-        return obs, reward, terminated, truncated, info
+    def _describe(self, env_id: int) -> str:
+        return task_description(self.task_specs[env_id])
 
     def render(self) -> tuple[np.ndarray, ...] | None:
         """One HxWx3 uint8 frame per env when render_mode is "rgb_array"."""

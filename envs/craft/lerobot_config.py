@@ -7,18 +7,17 @@ LeRobot's default `create_envs` makes `gym.make(gym_id, **gym_kwargs)` vector en
 
 from dataclasses import dataclass, field
 
-from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.configs import PolicyFeature
 from lerobot.envs.configs import EnvConfig
-from lerobot.utils.constants import ACTION, OBS_STATE
 
 from envs import CRAFT_LEROBOT_ENV_ID
-from envs.craft.lerobot_env import STATE_KEY
 from envs.craft.observation import OBS_DIM
+from envs.lerobot_env import StateEnvConfig, state_action_features
 
 
 @EnvConfig.register_subclass("craft")
 @dataclass
-class CraftEnvConfig(EnvConfig):
+class CraftEnvConfig(StateEnvConfig):
     """One Craft task (subtask letters, a named task or a description) evaluated from its start state.
 
     `max_steps=None` keeps the env's own limit (64 steps up to two subtasks, else 100). Videos are
@@ -31,17 +30,7 @@ class CraftEnvConfig(EnvConfig):
     max_steps: int | None = None
     fps: int = 10
     render_mode: str = "rgb_array"
-    features: dict[str, PolicyFeature] = field(
-        default_factory=lambda: {
-            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(1,)),
-            STATE_KEY: PolicyFeature(type=FeatureType.STATE, shape=(OBS_DIM,)),
-        }
-    )
-    features_map: dict[str, str] = field(default_factory=lambda: {ACTION: ACTION, STATE_KEY: OBS_STATE})
-
-    @property
-    def package_name(self) -> str:
-        return "envs"
+    features: dict[str, PolicyFeature] = field(default_factory=lambda: state_action_features(OBS_DIM, 1))
 
     @property
     def gym_id(self) -> str:
