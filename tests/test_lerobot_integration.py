@@ -47,12 +47,16 @@ def identity(x):
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory) -> tuple[Path, Path]:
-    """(dataset root, checkpoint) of a few steps of OCN training on 12 demos of task AC."""
-    base = tmp_path_factory.mktemp("lerobot")
-    root = base / "ds"
+def demos(tmp_path_factory) -> Path:
+    """Root of a dataset of 12 demos of task AC."""
+    root = tmp_path_factory.mktemp("lerobot") / "ds"
     args = ["--tasks", "AC", "--episodes-per-task", "12", "--root", str(root), "--repo-id", REPO_ID, "--seed", "1"]
     assert record_demos(args) == 0
+    return root
+
+
+def train(root: Path, base: Path, *extra: str) -> Path:
+    """A few steps of `lerobot-train --policy.type=ocn` on `root`; returns the final pretrained_model folder."""
     run_cli(
         "lerobot-train",
         "--policy.type=ocn",
@@ -69,9 +73,16 @@ def trained(tmp_path_factory) -> tuple[Path, Path]:
         "--policy.mlp_hidden_size=16",
         "--policy.window_size=24",
         f"--output_dir={base / 'train'}",
+        *extra,
         cwd=base,
     )
-    return root, base / "train" / "checkpoints" / f"{STEPS:06d}" / "pretrained_model"
+    return base / "train" / "checkpoints" / f"{STEPS:06d}" / "pretrained_model"
+
+
+@pytest.fixture(scope="module")
+def trained(demos) -> tuple[Path, Path]:
+    """(dataset root, checkpoint) of a few steps of OCN training on `demos`."""
+    return demos, train(demos, demos.parent)
 
 
 def episode_batch(root: Path, episode: int) -> dict:
@@ -106,6 +117,16 @@ def test_train_checkpoint_reloads_identically(trained):
     loss_second, _ = second.forward(batch)
     assert torch.isfinite(loss_first) and loss_first.item() > 0
     assert loss_first.item() == loss_second.item()
+
+
+def test_moe_trains_through_lerobot_train_and_reloads_as_moe(demos, tmp_path):
+    checkpoint = train(demos, tmp_path, "--policy.hierarchy=moe")
+    policy = OCNPolicy.from_pretrained(checkpoint)
+    assert policy.config.hierarchy == "moe" and policy.core.always_end and policy.config.tasks == [AC]
+    batch = episode_batch(demos, 0)
+    assert torch.equal(policy.parse(batch)["end"], torch.ones(1, batch[OBS_STATE].shape[1]))
+    loss, stats = policy.forward(batch)
+    assert torch.isfinite(loss) and stats["mean_end"] == 1.0
 
 
 def test_lerobot_eval_counts_the_episode(trained):

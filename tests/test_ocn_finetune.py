@@ -119,23 +119,37 @@ def test_finetune_writes_the_curve_and_a_checkpoint_that_keeps_the_options(finet
     assert not torch.equal(policy.core.controller_init, torch.zeros_like(policy.core.controller_init))
 
 
-def test_finetuned_checkpoint_runs_in_hard_mode_through_its_processors(finetuned):
-    policy, preprocessor, postprocessor = load_ocn(finetuned / "pretrained_model")
-    craft = CraftBatch(4, max_steps=12)
-    obs = craft.reset(seeds=range(4), tasks=["ADC", "CAD", "ADC", "CAD"])
-    tasks = [ADC, CAD, ADC, CAD]
+def hard_rollout(checkpoint: Path, codes: list[str], max_steps: int) -> list[torch.Tensor]:
+    """Run a finetuned checkpoint through its processors on one map per task code; returns, for each
+    step, the rows [E] where the controller chose (all rows, done or not, step together)."""
+    policy, preprocessor, postprocessor = load_ocn(checkpoint)
+    assert policy.config.execution == "hard"
+    craft = CraftBatch(len(codes), max_steps=max_steps)
+    obs = craft.reset(seeds=range(len(codes)), tasks=codes)
+    tasks = [task_description(parse_task(code)) for code in codes]
     policy.reset()
-    decisions = 0
+    decided = []
     while not craft.done.all():
         batch = preprocessor({OBS_STATE: torch.from_numpy(obs).float(), "task": tasks})
         action = postprocessor(policy.select_action(batch))
-        decided = policy.last_step.decided
-        if decisions == 0:
-            assert decided.all()
-        decisions += int(decided.sum())
-        assert action.shape == (4, 1)
+        assert action.shape == (len(codes), 1)
+        decided.append(policy.last_step.decided)
         obs, *_ = craft.step(action.long().numpy().ravel())
-    assert decisions >= 4
+    return decided
+
+
+def decisions_match_frames(out: Path) -> bool:
+    """Every iteration of a curve spent exactly one env frame per controller decision."""
+    rows = list(csv.DictReader(open(out / "curve.csv")))
+    frames = [0] + [int(row["frames"]) for row in rows]
+    return all(round(float(row["decisions_per_episode"]) * int(row["episodes"])) == after - before
+               for row, before, after in zip(rows, frames, frames[1:]))
+
+
+def test_finetuned_checkpoint_runs_in_hard_mode_through_its_processors(finetuned):
+    decided = hard_rollout(finetuned / "pretrained_model", ["ADC", "CAD", "ADC", "CAD"], max_steps=12)
+    assert decided[0].all() and sum(int(rows.sum()) for rows in decided) >= 4
+    assert not decisions_match_frames(finetuned)  # OCN's options last several steps
 
 
 def test_finetuned_checkpoint_runs_under_lerobot_eval_rollout(finetuned):
@@ -174,12 +188,15 @@ def test_bad_input_is_one_line_and_exit_code_2(ocn_checkpoint, tmp_path, capsys)
         "envs cannot run 3 tasks": [*base, "--tasks", "ADC,CAD,DCA", "--out", str(tmp_path / "c")],
         "hidden_size is 16 vs 8": [*base, "--checkpoint", str(incompatible), "--tasks", "ADC",
                                    "--out", str(tmp_path / "d")],
+        "Give either --checkpoint (one or more) or --flat": [*base, "--flat", "--tasks", "A",
+                                                             "--out", str(tmp_path / "e")],
+        "Give either --checkpoint": ["--tasks", "A", "--out", str(tmp_path / "f")],
     }
     for message, argv in cases.items():
         assert main(argv) == 2, message
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1 and err.startswith("ocn-finetune: "), err
-    assert not any((tmp_path / name).exists() for name in "abcd")
+    assert not any((tmp_path / name).exists() for name in "abcdef")
 
 
 def test_help_lists_the_options(capsys):
@@ -187,7 +204,7 @@ def test_help_lists_the_options(capsys):
         main(["--help"])
     assert exit_info.value.code == 0
     text = capsys.readouterr().out
-    for option in ("--checkpoint", "--tasks", "--reward", "--frames", "--envs", "--seed", "--out"):
+    for option in ("--checkpoint", "--flat", "--tasks", "--reward", "--frames", "--envs", "--seed", "--out"):
         assert option in text
 
 
@@ -204,3 +221,47 @@ def test_finetuning_is_seeded(ocn_checkpoint, tmp_path):
     second, _, _ = load_ocn(tmp_path / "two" / "pretrained_model")
     for (name, a), (_, b) in zip(first.state_dict().items(), second.state_dict().items(), strict=True):
         assert torch.equal(a, b), name
+
+
+# ---- baselines: MoE checkpoints and flat PPO -------------------------------------------------------
+
+
+def test_finetuning_an_moe_checkpoint_queries_the_controller_at_every_step(ocn_checkpoint, tmp_path):
+    moe = save_variant(ocn_checkpoint, tmp_path / "moe" / "pretrained_model", seed=5, hierarchy="moe")
+    out = tmp_path / "run"
+    argv = ["--checkpoint", str(moe), "--tasks", "ADC,CAD", "--frames", "400", "--envs", "4", "--max-steps", "20",
+            "--seed", "2", "--batch-size", "32", "--out", str(out)]
+    assert main(argv) == 0
+    assert decisions_match_frames(out)
+    policy, _, _ = load_ocn(out / "pretrained_model")
+    source, _, _ = load_ocn(moe)
+    assert policy.config.hierarchy == "moe" and policy.config.n_options == 3
+    for name, param in policy.core.options.named_parameters():
+        assert torch.equal(param, source.core.options.get_parameter(name)), name
+    decided = hard_rollout(out / "pretrained_model", ["ADC", "CAD"], max_steps=10)
+    assert len(decided) == 10 and all(rows.all() for rows in decided)
+
+
+def test_moe_and_ocn_options_are_not_pooled(ocn_checkpoint):
+    first, _, _ = load_ocn(ocn_checkpoint)
+    with pytest.raises(ValueError, match="hierarchy is 'ocn' vs 'moe'"):
+        merge_option_pools([first, variant(ocn_checkpoint, seed=1, hierarchy="moe")], [ADC])
+
+
+def test_flat_ppo_writes_the_same_curve_and_a_checkpoint_of_primitive_actions(tmp_path):
+    out = tmp_path / "flat"
+    argv = ["--flat", "--tasks", "A,D", "--frames", "400", "--envs", "4", "--max-steps", "10", "--hidden-size", "16",
+            "--seed", "1", "--batch-size", "32", "--out", str(out)]
+    assert main(argv) == 0
+    assert decisions_match_frames(out)
+    header = next(csv.reader(open(out / "curve.csv")))
+    assert {"frames", "mean_return", "success", "success[A]", "success[D]", "policy_loss"} <= set(header)
+    summary = json.loads((out / "finetune.json").read_text())
+    assert summary["flat"] and summary["checkpoints"] == [] and summary["hierarchy"] == "moe"
+    assert summary["n_options"] == 5 and summary["temperature"] == 1.0
+    policy, _, _ = load_ocn(out / "pretrained_model")
+    assert policy.config.hidden_size == 16
+    assert torch.equal(policy.core.options.b_out[:, 0, :5].argmax(-1), torch.arange(5))
+    assert not torch.equal(policy.core.controller_init, torch.zeros_like(policy.core.controller_init))
+    decided = hard_rollout(out / "pretrained_model", ["A", "D"], max_steps=6)
+    assert all(rows.all() for rows in decided)

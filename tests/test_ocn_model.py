@@ -458,3 +458,60 @@ def test_optimizer_groups_slow_the_controller_only():
     assert len(ids) + len(rest["params"]) == len(list(policy.parameters()))
     optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
     assert [group["lr"] for group in optimizer.param_groups] == pytest.approx([1e-3, 1e-4])
+
+
+# ---- MoE baseline (hierarchy="moe") ----------------------------------------------------------------
+
+
+def test_moe_termination_is_one_at_every_step_in_training_parsing_and_inference():
+    """Options that would never terminate under OCN still hand control back at every step under MoE."""
+    policy = make_policy(hierarchy="moe")
+    force_termination(policy, -1e4)
+    batch = make_batch()
+    loss, stats = policy(batch)
+    per_window, _ = policy(batch, reduction="none")
+    assert loss.shape == () and per_window.shape == (4,) and stats["mean_end"] == 1.0
+    parsed = policy.parse(batch)
+    assert parsed["p_c"].shape == (4, 5, N_OPTIONS) and torch.equal(parsed["end"], torch.ones(4, 5))
+    for execution in ("soft", "hard"):
+        policy.config.execution = execution
+        policy.reset()
+        for t in range(5):
+            policy.select_action({OBS_STATE: batch[OBS_STATE][:, t], "task": batch["task"]})
+            assert torch.equal(policy.last_step.end, torch.ones(4))
+            if execution == "hard":
+                assert policy.last_step.decided.all()
+    ocn = make_policy()
+    force_termination(ocn, -1e4)
+    assert torch.equal(ocn.parse(batch)["end"][:, 1:], torch.zeros(4, 4))
+
+
+def test_moe_loss_is_the_nll_of_a_fresh_controller_mixture_of_restarted_options_at_every_step():
+    """Eq. 17 with e_t = 1: the controller steps every step and every option restarts from h^o_0, so
+    p(a_t) = sum_i p^c_{t,i} p^o_i(a_t | x_t, h^o_{i,0})."""
+    policy = make_policy(hierarchy="moe")
+    batch = make_batch(batch=2, steps=4)
+    core, task = policy.core, policy.task_index(batch["task"], 2)
+    controller_h = core.controller_init[task]
+    initial = core.option_init.unsqueeze(1).expand(-1, 2, -1)
+    log_p = []
+    with torch.no_grad():
+        for t in range(4):
+            x = batch[OBS_STATE][:, t]
+            ctrl = core.controller(x, controller_h.unsqueeze(0))
+            controller_h = ctrl.hidden[0]
+            p_c = torch.softmax(ctrl.logits[0] / policy.config.temperature, -1)
+            p_o = torch.softmax(core.options(x, initial).logits, -1)
+            p_a = torch.einsum("bn,nba->ba", p_c, p_o).gather(1, batch[ACTION][:, t].long()).squeeze(1)
+            log_p.append(p_a.log())
+        loss, _ = policy(batch)
+    torch.testing.assert_close(loss, -torch.stack(log_p, 1).mean(1).mean())
+    assert not torch.allclose(make_policy()(batch)[0], loss)  # same weights, OCN's recurrence differs
+
+
+def test_moe_switch_is_saved_and_checked(tmp_path):
+    make_policy(hierarchy="moe").save_pretrained(tmp_path)
+    assert OCNPolicy.from_pretrained(tmp_path).core.always_end
+    assert OCNConfig(device="cpu").hierarchy == "ocn"
+    with pytest.raises(ValueError, match="hierarchy"):
+        OCNConfig(device="cpu", hierarchy="flat")

@@ -9,6 +9,7 @@ from envs.craft.world import DOWN, EMPTY, LEFT, UP, USE, WOOD
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy
+from tools.ocn_finetune import primitive_action_pool
 from tools.ppo import Decisions, PPOConfig, PPOTrainer, collect, finetune, replay_controller, semi_mdp_gae
 
 torch.set_num_threads(1)
@@ -261,3 +262,65 @@ def test_decisions_mask_marks_real_decisions():
         return_=np.zeros(2), success=np.zeros(2, dtype=bool), frames=np.zeros(2, dtype=int),
     )
     assert batch.mask.tolist() == [[True, False, False], [True, True, True]]
+
+
+# ---- baselines: MoE (one-step options) and flat PPO ------------------------------------------------
+
+
+def test_moe_rollouts_are_one_step_options_with_undiscounted_step_rewards():
+    """Under MoE the semi-MDP is the plain MDP: one decision per env step, each lasting one step, with
+    that step's reward; options that would never terminate under OCN change nothing."""
+    policy = craft_policy(n_options=2, hierarchy="moe")
+    set_option(policy, 0, USE, end_logit=-50.0)
+    set_option(policy, 1, DOWN, end_logit=-50.0)  # blocked by the wood: the agent keeps facing it
+    batch = collect(policy, WoodAhead(16, reward="dense", max_steps=5), [TASK] * 16, range(16), gamma=0.5)
+    assert np.array_equal(batch.count, batch.frames) and (batch.duration[batch.mask] == 1).all()
+    assert (batch.duration[~batch.mask] == 0).all()
+    np.testing.assert_allclose(batch.reward.sum(1), batch.return_)
+    chose_use = (batch.option == 0) & batch.mask
+    assert np.array_equal(batch.success, chose_use.any(1)) and batch.success.any() and (batch.count > 1).any()
+    assert np.array_equal(batch.count[batch.success], chose_use.argmax(1)[batch.success] + 1)
+
+
+def test_semi_mdp_gae_of_one_step_options_is_plain_gae():
+    gamma, lam = 0.9, 0.8
+    gen = torch.Generator().manual_seed(2)
+    reward, value = torch.rand(3, 6, generator=gen), torch.rand(3, 6, generator=gen)
+    count = torch.tensor([6, 4, 1])
+    real = torch.arange(6) < count[:, None]
+    reward, value = reward * real, value * real
+    advantage, returns = semi_mdp_gae(reward, real.long(), value, count, gamma, lam)
+    for e, n in enumerate(count.tolist()):
+        following = 0.0
+        for t in reversed(range(n)):
+            next_value = value[e, t + 1] if t + 1 < n else 0.0
+            following = reward[e, t] + gamma * next_value - value[e, t] + gamma * lam * following
+            torch.testing.assert_close(advantage[e, t], following)
+    torch.testing.assert_close(returns, advantage + value)
+
+
+def test_primitive_action_pool_option_a_always_emits_action_a():
+    policy = primitive_action_pool([TASK], hidden_size=16)
+    obs = torch.from_numpy(CraftBatch(8).reset(seeds=range(8), tasks=[TASK] * 8)).float()
+    for action in range(5):
+        chosen = torch.full((8,), action)
+        emitted, _, _ = policy.act_with_options(obs, chosen, None, torch.ones(8, dtype=torch.bool), greedy=False)
+        assert torch.equal(emitted, torch.full((8, 1), float(action)))
+    assert policy.config.hierarchy == "moe" and policy.config.temperature == 1.0
+
+
+def test_flat_ppo_learns_to_use_the_wood_it_faces_well_above_the_random_rate():
+    """The untrained flat policy's success on fresh maps is measured first (about 1/4: it must `use`
+    before it turns away); 8k frames of PPO with the paper's settings must lift it above 0.9."""
+    torch.manual_seed(0)
+    policy = primitive_action_pool([TASK], hidden_size=32)
+
+    def success_rate() -> float:
+        batch = collect(policy, WoodAhead(256, reward="sparse", max_steps=6), [TASK] * 256, range(256), 0.97)
+        return float(batch.success.mean())
+
+    random_rate = success_rate()
+    finetune(policy, WoodAhead(64, reward="sparse", max_steps=6), [TASK], total_frames=8_000,
+             config=PPOConfig(batch_size=256), seed=0)
+    learned = success_rate()
+    assert random_rate < 0.4 and learned > 0.9 and learned > random_rate + 0.5, (random_rate, learned)

@@ -7,6 +7,14 @@ option space (see `tools.ppo`) while every option stays frozen. The result is an
 checkpoint with `execution="hard"`, so `load_ocn` and `lerobot-eval --policy.path=DIR/pretrained_model`
 run the finetuned hierarchy unchanged.
 
+`--flat` (instead of --checkpoint) trains the flat PPO baseline from scratch, with no demos: a
+policy on primitive actions, built as the same network whose N = 5 options are the five primitive
+actions as frozen one-step options (option a always emits action a) under `hierarchy="moe"`, so the
+controller picks an action at every step. The controller is then an ordinary recurrent actor (the
+OCN cell over the Craft observation features, one learned initial state per task, temperature 1
+unless --temperature says otherwise) and trains by the very same PPO code; its curves are
+comparable with OCN's on env frames, and its checkpoint runs under `lerobot-eval` like any other.
+
 Writes into --out: curve.csv (one row per PPO iteration: env frames, mean return, success overall
 and per task as `success[ADC]`, PPO statistics), curve.png, finetune.json (settings and summary) and
 pretrained_model/ (config, weights and the first checkpoint's pre/post-processors).
@@ -27,20 +35,25 @@ from typing import Any
 import torch
 
 from lerobot.configs import NormalizationMode
-from policies.ocn import OCNPolicy
+from policies.ocn import OCNConfig, OCNPolicy
 
 # Config fields that must agree for options of different checkpoints to share one encoder, one
 # action head and one stacked cell.
+# `hierarchy` too: an MoE's options were trained as one-step experts and never learned to terminate.
 POOL_FIELDS = ("obs_encoder", "action_type", "n_actions", "hidden_size", "mlp_hidden_size", "mlp_depth",
-               "log_std_min", "log_std_max")
+               "log_std_min", "log_std_max", "hierarchy")
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="ocn-finetune", description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
-    parser.add_argument("--checkpoint", type=Path, action="append", required=True,
+    parser.add_argument("--checkpoint", type=Path, action="append", default=[],
                         help="a pretrained_model folder of an ocn checkpoint; repeat to pool several option sets")
+    parser.add_argument("--flat", action="store_true",
+                        help="no checkpoint: flat PPO from scratch over the primitive actions (the baseline)")
+    parser.add_argument("--hidden-size", type=int, default=128,
+                        help="with --flat: width of the recurrent actor's state and MLP")
     parser.add_argument("--tasks", required=True,
                         help="comma-separated new tasks, as subtask letters (e.g. ADC,CAD,DCA) or named tasks")
     parser.add_argument("--reward", choices=("sparse", "dense"), default="sparse")
@@ -124,6 +137,33 @@ def merge_option_pools(
     return pooled.eval()
 
 
+def primitive_action_pool(tasks: Sequence[str], hidden_size: int, temperature: float | None = None) -> OCNPolicy:
+    """A hard-execution MoE over Craft whose option a always emits primitive action a: the flat baseline.
+
+    Each option's action logits are its output bias alone (0 for its action, -1e4 for the others, so
+    sampling is exact); under `hierarchy="moe"` every option lasts one step, so the fresh controller
+    (drawn from torch's current RNG) is a recurrent policy over primitive actions.
+    """
+    from envs.craft.observation import OBS_DIM
+    from envs.craft.world import N_ACTIONS
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.utils.constants import ACTION, OBS_STATE
+
+    config = OCNConfig(
+        device="cpu", n_options=N_ACTIONS, n_actions=N_ACTIONS, hidden_size=hidden_size, mlp_hidden_size=hidden_size,
+        temperature=1.0 if temperature is None else temperature, tasks=list(tasks), hierarchy="moe",
+        execution="hard", inference_mode="sample",
+        input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (OBS_DIM,))},
+        output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))},
+    )
+    policy = OCNPolicy(config)
+    with torch.no_grad():
+        cell = policy.core.options
+        cell.w_out[..., :N_ACTIONS] = 0.0
+        cell.b_out[:, 0, :N_ACTIONS] = torch.where(torch.eye(N_ACTIONS, dtype=torch.bool), 0.0, -1e4)
+    return policy.eval()
+
+
 def save_checkpoint(policy: OCNPolicy, preprocessor: Any, postprocessor: Any, path: Path) -> None:
     """An `ocn` pretrained_model folder: config and weights, and the pre/post-processor pipelines."""
     policy.save_pretrained(path)
@@ -160,12 +200,33 @@ def plot_curve(rows: list[dict[str, Any]], labels: Sequence[str], path: Path, ti
 
 
 def _check_args(args: argparse.Namespace) -> None:
-    if args.frames < 1 or args.envs < 1 or args.threads < 1:
-        raise ValueError("--frames, --envs and --threads must be >= 1.")
+    if bool(args.checkpoint) == args.flat:
+        raise ValueError("Give either --checkpoint (one or more) or --flat.")
+    if args.frames < 1 or args.envs < 1 or args.threads < 1 or args.hidden_size < 1:
+        raise ValueError("--frames, --envs, --threads and --hidden-size must be >= 1.")
     if args.max_steps is not None and args.max_steps < 1:
         raise ValueError("--max-steps must be >= 1.")
     if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
         raise FileExistsError(f"--out {args.out} exists and is not an empty folder; outputs are never overwritten.")
+
+
+def _initial_policy(args: argparse.Namespace, tasks: Sequence[str]) -> tuple[OCNPolicy, Any, Any]:
+    """The policy PPO starts from, with the processors its checkpoint is saved with: the pooled options
+    of --checkpoint under a fresh controller, or with --flat the primitive-action pool."""
+    from policies.ocn import make_ocn_pre_post_processors
+    from tools.episode_parsing import load_ocn
+
+    if args.flat:
+        torch.manual_seed(args.seed)
+        policy = primitive_action_pool(tasks, args.hidden_size, args.temperature)
+        return (policy, *make_ocn_pre_post_processors(policy.config))
+    loaded = [load_ocn(path) for path in args.checkpoint]
+    for policy, _, _ in loaded:
+        check_craft(policy)
+    torch.manual_seed(args.seed)
+    policy = merge_option_pools([policy for policy, _, _ in loaded], tasks, args.temperature,
+                                [str(path) for path in args.checkpoint])
+    return policy, loaded[0][1], loaded[0][2]
 
 
 def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
@@ -174,7 +235,6 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
 
     from envs.craft.batch import CraftBatch
     from envs.craft.world import parse_task_list, task_code, task_description
-    from tools.episode_parsing import load_ocn
     from tools.ppo import PPOConfig, env_tasks, finetune
 
     _check_args(args)
@@ -186,12 +246,7 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     env_tasks(tasks, args.envs)
     config = PPOConfig(lr=args.lr, epochs=args.epochs, batch_size=args.batch_size, gamma=args.gamma,
                        gae_lambda=args.gae_lambda, clip=args.clip, entropy_coef=args.entropy)
-    loaded = [load_ocn(path) for path in args.checkpoint]
-    for policy, _, _ in loaded:
-        check_craft(policy)
-    torch.manual_seed(args.seed)
-    policy = merge_option_pools([policy for policy, _, _ in loaded], tasks, args.temperature,
-                                [str(path) for path in args.checkpoint])
+    policy, preprocessor, postprocessor = _initial_policy(args, tasks)
     envs = CraftBatch(args.envs, mode=args.mode, reward=args.reward, max_steps=args.max_steps)
 
     args.out.mkdir(parents=True, exist_ok=True)
@@ -214,11 +269,15 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
         rows = finetune(policy, envs, tasks, args.frames, config, args.seed, record, labels)
     wall = time.perf_counter() - started
     checkpoint = args.out / "pretrained_model"
-    save_checkpoint(policy, loaded[0][1], loaded[0][2], checkpoint)
-    title = f"ocn-finetune {','.join(labels)} ({args.reward}), options of {len(loaded)} checkpoint(s), seed {args.seed}"
+    save_checkpoint(policy, preprocessor, postprocessor, checkpoint)
+    source = "flat PPO" if args.flat else f"options of {len(args.checkpoint)} checkpoint(s)"
+    title = f"ocn-finetune {','.join(labels)} ({args.reward}), {source}, T={policy.config.temperature:g}, seed {args.seed}"
     plot_curve(rows, labels, args.out / "curve.png", title)
     summary = {
         "checkpoints": [str(path) for path in args.checkpoint],
+        "flat": args.flat,
+        "hierarchy": policy.config.hierarchy,
+        "temperature": policy.config.temperature,
         "tasks": tasks,
         "n_options": policy.config.n_options,
         "reward": args.reward,

@@ -15,6 +15,10 @@ episodes, from the task's initial controller state, by `replay_controller`; epis
 (at most a few dozen decisions). Old log-probabilities and values come from the same replay with
 the pre-update weights, so the PPO ratio is exactly 1 before the first gradient step.
 
+Under `hierarchy="moe"` (the MoE baseline, and the flat baseline built on it in `ocn-finetune
+--flat`) the controller decides at every step, so every option lasts one step: one transition per
+env step with R = r_t and discount gamma, and semi-MDP GAE is ordinary GAE.
+
 The critic is a small MLP on h^c (`ValueHead`), trained with the controller (shared h^c, value
 loss weighted by `value_coef`). It only serves training and is not part of the saved policy.
 Options, their initial states, the encoder and the action head are frozen: `requires_grad` is

@@ -14,6 +14,7 @@ ACTION_TYPES = ("discrete", "continuous")
 WINDOW_STARTS = ("episode", "any")
 INFERENCE_MODES = ("sample", "greedy")
 EXECUTIONS = ("soft", "hard")
+HIERARCHIES = ("ocn", "moe")
 
 
 def _check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
@@ -40,6 +41,16 @@ class OCNConfig(PreTrainedConfig):
     Both average the NLL over each window's real frames first, then over windows: sampling windows
     at every frame weights an episode by its length, so this is the per-frame mean NLL of the
     dataset in expectation.
+
+    `hierarchy` selects the model family:
+    - "ocn" (default): the paper's model; options run until their learned termination fires.
+    - "moe": the Mixture-of-Experts baseline (paper section 4 and appendix A.3): the same network
+      without termination, so the controller re-chooses its option distribution at every step. The
+      termination e_t is fixed at 1 at every step, in training (eq. 17 then always takes its "done"
+      branch: the controller steps and every option restarts from h^o_0, so an option only sees the
+      current observation) and in both executions: under "hard" the controller samples an option
+      at every step, so in PPO finetuning every option lasts exactly one step. The options keep
+      their (then untrained and unused) termination heads so that the checkpoint layout is OCN's.
     """
 
     n_options: int = 3
@@ -67,6 +78,7 @@ class OCNConfig(PreTrainedConfig):
     # state advances only at these decisions) samples the next one, which restarts from h^o_0.
     # `forward` and `parse` are the soft recurrence in both cases.
     execution: str = "soft"
+    hierarchy: str = "ocn"
 
     optimizer_lr: float = 1e-3
     # The controller's learning rate is optimizer_lr * controller_lr_scale. The paper slows the
@@ -85,6 +97,7 @@ class OCNConfig(PreTrainedConfig):
         _check_choice("window_start", self.window_start, WINDOW_STARTS)
         _check_choice("inference_mode", self.inference_mode, INFERENCE_MODES)
         _check_choice("execution", self.execution, EXECUTIONS)
+        _check_choice("hierarchy", self.hierarchy, HIERARCHIES)
         if self.n_options < 1 or self.mlp_depth < 1 or self.window_size < 1:
             raise ValueError("n_options, mlp_depth and window_size must all be >= 1.")
         if self.controller_lr_scale <= 0:

@@ -133,6 +133,7 @@ class OCNPolicy(PreTrainedPolicy):
             mlp_depth=config.mlp_depth,
             n_params=self.head.n_params,
             temperature=config.temperature,
+            always_end=config.hierarchy == "moe",
         )
         self.reset()
 

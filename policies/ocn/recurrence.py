@@ -4,7 +4,8 @@ Every step computes both branches of eq. 17: "not done" (options continue from t
 the controller keeps its state and p^c_{t-1}) and "done" (the controller steps, the options restart
 from their learned initial states), and mixes them with e_t = sum_i p^c_{t-1,i} e_{i,t} (eq. 12).
 Step t = 1 (eq. 8-10) is the "done" branch alone, which is what a step with e_t forced to 1 gives,
-so episode starts are a per-row `start` flag rather than a separate code path.
+so episode starts are a per-row `start` flag rather than a separate code path. The MoE baseline
+(`always_end`) is the same recurrence with that flag raised at every step.
 
 `hard_step` is the sampled counterpart used by the RL phase (appendix A.1) and by hard execution:
 one option runs at a time, and the controller only steps where that option's sampled termination
@@ -76,7 +77,10 @@ def _mix(end: Tensor, done: Tensor, not_done: Tensor) -> Tensor:
 
 
 class OCNCore(nn.Module):
-    """Shared controller (N = 1 cell over options), N option cells, and the learned initial states."""
+    """Shared controller (N = 1 cell over options), N option cells, and the learned initial states.
+
+    `always_end` forces e_t = 1 at every step (the MoE baseline): every step is then a start.
+    """
 
     def __init__(
         self,
@@ -88,10 +92,12 @@ class OCNCore(nn.Module):
         mlp_depth: int,
         n_params: int,
         temperature: float,
+        always_end: bool = False,
     ) -> None:
         super().__init__()
         self.n_options = n_options
         self.temperature = temperature
+        self.always_end = always_end
         self.controller = StackedCell(
             1, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_options, with_end=False
         )
@@ -114,6 +120,10 @@ class OCNCore(nn.Module):
         option = torch.zeros(task_index.shape[0], dtype=torch.long, device=task_index.device)
         return HardState(soft.controller_h, soft.p_c, option, soft.option_h)
 
+    def forced_end(self, start: Tensor) -> Tensor:
+        """Rows [B] whose e_t is 1 this step whatever the options say: episode starts, or all under MoE."""
+        return torch.ones_like(start) if self.always_end else start
+
     def decide(self, x_controller: Tensor, controller_h: Tensor) -> tuple[Tensor, Tensor]:
         """One controller step from projected observations [1, B, d_mlp] and h^c [B, d_hid]:
         tempered logits (log p^c up to a constant) [B, N] and the new h^c [B, d_hid]."""
@@ -130,6 +140,7 @@ class OCNCore(nn.Module):
         step costs the same whichever rows decide.
         """
         rows = torch.arange(start.shape[0], device=start.device)
+        start = self.forced_end(start)
         continued = self.options.step(x.options, state.option_h)
         end = torch.where(start, 1.0, continued.end[state.option, rows])
         fired = end > 0.5 if greedy else torch.bernoulli(end).bool()
@@ -155,6 +166,7 @@ class OCNCore(nn.Module):
 
     def step(self, state: OCNState, x: Projected, start: Tensor) -> tuple[OCNState, StepOutput]:
         """One step from projected observations x ([1, B, .], [N, B, .]); `start` [B] forces e_t = 1."""
+        start = self.forced_end(start)
         continued = self.options.step(x.options, state.option_h)
         restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
         ctrl = self.controller.step(x.controller, state.controller_h.unsqueeze(0))
