@@ -19,10 +19,12 @@ def _reproduce(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
 
 
 def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
-    done = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse")
+    done = _reproduce(tmp_path, "--rewards", "sparse")
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())
-    assert result["runs_finished"] == result["runs_planned"] == 1
+    assert result["runs_finished"] == result["runs_planned"] == 3
+    assert set(result["summary"]) == {"OCN | sparse", "MoE | sparse", "flat PPO | sparse"}
+    assert [r["summary"]["n_options"] for r in result["runs"]] == [3, 3, 5]
     row = result["summary"]["OCN | sparse"]
     assert set(row["at_budget"]) == {"mean_return", "success", "success[ADC]", "success[CAD]", "success[DCA]"}
     assert len(row["curves"]["success"]["mean"]) == len(row["curve_frames"])
@@ -30,11 +32,15 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
     assert all(0.0 <= row["at_budget"][k]["mean"] <= 1.0 for k in ("success", "success[ADC]"))
     assert [c["check"] for c in result["must_show"]][0].startswith("OCN, sparse: success >= 0.9")
     assert (tmp_path / "results" / "finetune_s1.png").stat().st_size > 0
-    assert "| OCN | sparse | 1 |" in (tmp_path / "results" / "finetune_s1.md").read_text()
+    table = (tmp_path / "results" / "finetune_s1.md").read_text()
+    assert all(f"| {name} | sparse | 1 |" in table for name in ("OCN", "MoE", "flat PPO"))
+    checks = {c["check"] for c in result["must_show"]}
+    assert {"sparse: MoE's mean success below OCN's", "sparse: flat PPO's mean success below OCN's"} <= {
+        c.split(" (")[0] for c in checks}
     # S1's OCN clone is the imitation study's main-variant run, shared by both reproductions.
     assert (tmp_path / "work" / "imitation_s1" / "3options_T10" / "seed1" / "train").is_dir()
 
-    again = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse")
+    again = _reproduce(tmp_path, "--rewards", "sparse")
     assert again.returncode == 0 and "finetuning" not in again.stdout and "training" not in again.stdout
 
     changed = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--frames", "3000")
