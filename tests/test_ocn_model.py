@@ -15,6 +15,7 @@ from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell
 from policies.ocn.heads import GaussianHead, mixture_log_prob
 from policies.ocn.recurrence import OCNState
+from policies.sequence import training_windows
 
 torch.set_num_threads(1)
 
@@ -244,7 +245,7 @@ def test_trailing_padding_is_cut_without_changing_loss_or_gradients():
     long_window = pad_around(episodes, lead=[0, 0, 0, 0], width=12)
     episodes[f"{ACTION}_is_pad"][0, 3:] = long_window[f"{ACTION}_is_pad"][0, 3:] = True
     policy = make_policy(window_size=12, window_start="any")
-    mask, state, action = policy._training_windows(long_window)
+    mask, state, action = training_windows(policy.config, long_window)
     assert mask.shape == (4, 5) and state.shape[:2] == (4, 5) and action.shape[:2] == (4, 5)
     grads = []
     for batch in (long_window, episodes):

@@ -1,11 +1,12 @@
-"""Batched rollouts of a trained OCN in Craft: free-run success per task, and each option alone.
+"""Batched rollouts of a trained policy in Craft: free-run success per task, and each option alone
+(for a policy made of options, `OptionPolicy`).
 
 All episodes of a task run as one `CraftBatch`, so the policy sees one batch per step. Actions go
 through the policy's own pre/post-processors, as under `lerobot-eval`.
 """
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -13,10 +14,28 @@ from tqdm import tqdm
 
 from envs.craft.batch import CraftBatch
 from envs.craft.lerobot_env import action_indices
+from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_STATE
 from policies.ocn import OCNPolicy
 from tools.episode_parsing import Processor
 from tools.rollout_mcap import RolloutMcapWriter, RolloutTrace
+
+
+@runtime_checkable
+class OptionPolicy(Protocol):
+    """A policy made of options that can act alone (OCN): what the option x subtask table runs, and
+    whose per-step option choice (`last_step`, after each `select_action`) a rollout log records."""
+
+    last_step: Any
+
+    def act_with_options(
+        self,
+        state: torch.Tensor,
+        option: torch.Tensor,
+        option_h: torch.Tensor | None,
+        restart: torch.Tensor,
+        greedy: bool,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
 
 
 def _observation(obs: np.ndarray, task: str, preprocessor: Processor) -> dict[str, Any]:
@@ -38,7 +57,7 @@ def _step(craft: CraftBatch, action: torch.Tensor) -> tuple[np.ndarray, np.ndarr
 
 @torch.no_grad()
 def free_run_success(
-    policy: OCNPolicy,
+    policy: PreTrainedPolicy,
     preprocessor: Processor,
     postprocessor: Processor,
     tasks: Sequence[str],
@@ -48,7 +67,8 @@ def free_run_success(
     log: RolloutMcapWriter | None = None,
 ) -> dict[str, float]:
     """Success rate per task of the whole policy over `episodes` fresh maps each (seeds seed, seed+1, ...);
-    with `log`, every step (and the policy's p^c, option and termination) also goes to that MCAP."""
+    with `log` (an `OptionPolicy` only), every step and the policy's p^c, option and termination also
+    go to that MCAP."""
     rates = {}
     for task in tqdm(tasks, desc="free run", leave=False):
         craft, obs = _fresh_maps(task, episodes, mode, seed)

@@ -1,24 +1,28 @@
-"""A trained OCN read back over recorded episodes: one place for loading a checkpoint and parsing.
+"""A trained policy read back over recorded episodes: one place for loading a checkpoint and parsing.
 
-`ocn-eval` scores the parse, `ocn-view` draws it and `ocn-annotate` writes it into a dataset; all
-three load the checkpoint and its processors with `load_ocn` and get the per-step hierarchy of
-whole episodes from `parse_episodes`.
+`ocn-eval` scores the parse, `ocn-view` draws it and `ocn-annotate` writes it into a dataset.
+Checkpoints load with `load_policy` (any registered type) or `load_ocn` (tools that need OCN's
+options). `parse_episodes` gives OCN's per-step hierarchy of whole episodes; `segment_episodes`
+gives every model type's parse in the one form the shared parsing metrics read (a `Segmentation`
+per episode), through that type's entry in `PARSERS`: a new model type adds an entry there.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
+from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import EpisodeArrays
 from policies.ocn import OCNPolicy
-from tools.parsing_metrics import segment_starts
+from policies.ompn.modeling_ompn import expansion_boundaries
+from tools.parsing_metrics import boundaries_from_labels, parsing_scores, segment_starts
 
 Processor = Callable[[Any], Any]
 
@@ -38,14 +42,44 @@ class EpisodeParse:
         return segment_starts(self.option)[1:]
 
 
-def load_ocn(path: Path, device: str = "cpu") -> tuple[OCNPolicy, Processor, Processor]:
-    """An `ocn` checkpoint (a `pretrained_model` folder) in eval mode, with its pre/post-processors."""
-    from lerobot.policies.factory import make_pre_post_processors
+@dataclass
+class Segmentation:
+    """One episode's parse as the shared metrics read it: `boundaries`, the last step of each
+    predicted segment (sorted), and `labels` [T], a per-step option label, or None for a model
+    without discrete options (NMI needs labels)."""
+
+    boundaries: np.ndarray
+    labels: np.ndarray | None
+
+
+class Segmenter(Protocol):
+    """How one model type parses whole episodes for the metrics (one Segmentation per episode)."""
+
+    def __call__(
+        self, policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int
+    ) -> list[Segmentation]: ...
+
+
+@dataclass(frozen=True)
+class Parser:
+    """A model type's entry: its `segment` function and, for a model without per-step labels,
+    `no_labels`: why it has none (reported in place of NMI)."""
+
+    segment: Segmenter
+    no_labels: str | None = None
+
+
+def load_policy(path: Path, device: str = "cpu") -> tuple[PreTrainedPolicy, Processor, Processor]:
+    """A checkpoint (a `pretrained_model` folder) of any registered policy type, in eval mode, with
+    its pre/post-processors."""
+    from lerobot.configs import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     path = Path(path)
     if not (path / "config.json").exists():
         raise FileNotFoundError(f"{path} holds no config.json: pass a checkpoint's pretrained_model folder.")
-    policy = OCNPolicy.from_pretrained(path)
+    config = PreTrainedConfig.from_pretrained(path)
+    policy = get_policy_class(config.type).from_pretrained(path, config=config)
     policy.config.device = device
     policy.to(device).eval()
     preprocessor, postprocessor = make_pre_post_processors(
@@ -54,20 +88,26 @@ def load_ocn(path: Path, device: str = "cpu") -> tuple[OCNPolicy, Processor, Pro
     return policy, preprocessor, postprocessor
 
 
-def check_tasks(policy: OCNPolicy, episodes: EpisodeArrays) -> None:
-    """Every task of the episodes must have an initial controller state in the policy."""
+def load_ocn(path: Path, device: str = "cpu") -> tuple[OCNPolicy, Processor, Processor]:
+    """`load_policy` for tools that need OCN's options: another policy type is a ValueError."""
+    policy, preprocessor, postprocessor = load_policy(path, device)
+    if not isinstance(policy, OCNPolicy):
+        raise ValueError(f"{path} holds an `{policy.name}` checkpoint; this tool needs an `ocn` one.")
+    return policy, preprocessor, postprocessor
+
+
+def check_tasks(policy: PreTrainedPolicy, episodes: EpisodeArrays) -> None:
+    """Every task of the episodes must be one the policy was trained on."""
     unknown = sorted(set(episodes.tasks) - set(policy.config.tasks))
     if unknown:
         raise ValueError(f"The dataset has tasks {unknown} that the policy was not trained on ({policy.config.tasks}).")
 
 
-@torch.no_grad()
-def parse_episodes(
-    policy: OCNPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int = 1024
-) -> list[EpisodeParse]:
-    """The policy's hierarchy over each whole episode, cut to the episode's real steps."""
+def _parsed_episodes(
+    policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int, keys: Sequence[str]
+) -> Iterator[dict[str, np.ndarray]]:
+    """`policy.parse`'s outputs `keys` for each whole episode, cut to its real steps, in episode order."""
     check_tasks(policy, episodes)
-    parses = []
     for start in range(0, len(episodes.tasks), batch_size):
         rows = slice(start, start + batch_size)
         batch = {
@@ -76,7 +116,78 @@ def parse_episodes(
             f"{ACTION}_is_pad": torch.from_numpy(~episodes.mask[rows]),
             "task": episodes.tasks[rows],
         }
-        parsed = {key: value.cpu().numpy() for key, value in policy.parse(preprocessor(batch)).items()}
+        with torch.no_grad():
+            parsed = policy.parse(preprocessor(batch))
+        parsed = {key: parsed[key].cpu().numpy() for key in keys}
         for i, length in enumerate(episodes.lengths[rows]):
-            parses.append(EpisodeParse(parsed["p_c"][i, :length], parsed["option"][i, :length], parsed["end"][i, :length]))
-    return parses
+            yield {key: value[i, :length] for key, value in parsed.items()}
+
+
+def parse_episodes(
+    policy: OCNPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int = 1024
+) -> list[EpisodeParse]:
+    """The OCN's hierarchy over each whole episode, cut to the episode's real steps."""
+    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("p_c", "option", "end"))
+    return [EpisodeParse(**episode) for episode in parsed]
+
+
+def _ocn_segmentations(
+    policy: OCNPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int
+) -> list[Segmentation]:
+    """OCN: the chosen option argmax p^c labels each step; a segment ends where it changes."""
+    options = [parse.option for parse in parse_episodes(policy, preprocessor, episodes, batch_size)]
+    return [Segmentation(boundaries_from_labels(option), option) for option in options]
+
+
+def _ompn_segmentations(
+    policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int
+) -> list[Segmentation]:
+    """OMPN: per episode, `expansion_boundaries` (its top-k read-out in the shared boundary
+    convention), k = the episode's number of ground-truth boundaries (OMPN is told how many, as in
+    its own evaluation)."""
+    counts = [boundaries_from_labels(episodes.subtask_index[i, :n]).size for i, n in enumerate(episodes.lengths)]
+    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("depth",))
+    return [
+        Segmentation(expansion_boundaries(episode["depth"], k), None) for episode, k in zip(parsed, counts, strict=True)
+    ]
+
+
+PARSERS: dict[str, Parser] = {
+    "ocn": Parser(_ocn_segmentations),
+    "ompn": Parser(
+        _ompn_segmentations,
+        no_labels=(
+            "OMPN has no discrete per-step choice to label steps with: its memory is continuous and only "
+            "its boundaries are read out. A segment index derived from them would restate the boundaries "
+            "(already scored by F1 and alignment), and, numbering segments within an episode, would not "
+            "be an identity that recurs across tasks, which is what NMI measures for OCN's options."
+        ),
+    ),
+}
+
+
+def parser_of(policy: PreTrainedPolicy) -> Parser:
+    """The `PARSERS` entry of the policy's type; a type without one is a ValueError."""
+    if policy.name not in PARSERS:
+        raise ValueError(f"No parse is defined for `{policy.name}` policies; the parsed types are {sorted(PARSERS)}.")
+    return PARSERS[policy.name]
+
+
+def segment_episodes(
+    policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int = 1024
+) -> list[Segmentation]:
+    """Any parsed model type's Segmentation of each whole episode."""
+    return parser_of(policy).segment(policy, preprocessor, episodes, batch_size)
+
+
+def score_segmentations(episodes: EpisodeArrays, parses: Sequence[Segmentation]) -> dict[str, float | None]:
+    """The shared parsing metrics of one Segmentation per episode against the episodes' ground truth:
+    f1_tol0, f1_tol1 and align_acc from the boundaries, nmi from the labels (None without labels).
+    Only the predictions count, never which model made them."""
+    segments = [episodes.subtask_index[i, :n] for i, n in enumerate(episodes.lengths)]
+    subtasks = [episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)]
+    labelled = all(parse.labels is not None for parse in parses)
+    labels = [parse.labels for parse in parses] if labelled else None
+    scores: dict[str, float | None] = parsing_scores(segments, subtasks, [parse.boundaries for parse in parses], labels)
+    scores.setdefault("nmi", None)
+    return scores

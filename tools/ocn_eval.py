@@ -1,10 +1,13 @@
-"""`ocn-eval`: how well a trained OCN parses held-out demonstrations, and how well it acts.
+"""`ocn-eval`: how well a trained policy (OCN, or a baseline) parses held-out demonstrations, and how well it acts.
 
-On the split's episodes (default "val") it runs the policy over each whole episode and scores the
-per-step chosen option (argmax p^c) against the ground-truth subtasks with the shared parsing
-metrics (F1 at tolerance 0 and 1, task alignment, NMI). In the Craft env it measures each frozen
-option alone on each subtask (paper table 1) and the whole policy's free-run success per task.
-Writes the JSON and a PNG of the option x subtask table.
+On the split's episodes (default "val") it runs the policy over each whole episode and scores its
+parse against the ground-truth subtasks with the shared parsing metrics: F1 at tolerance 0 and 1
+and task alignment from the predicted boundaries, NMI from per-step labels (OCN: the chosen option
+argmax p^c). In the Craft env it measures the whole policy's free-run success per task and, for
+a policy made of options, each frozen option alone on each subtask (paper table 1), drawn as a PNG
+beside the JSON. Every model type parses through `tools.episode_parsing` (OMPN: the top-k steps of
+its expected expansion); what does not apply to a model (OMPN has no labels and no options) is
+null in the JSON, with the reason under "not_applicable".
 """
 
 from __future__ import annotations
@@ -23,7 +26,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="ocn-eval", description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
-    parser.add_argument("--policy", type=Path, required=True, help="a pretrained_model folder of an ocn checkpoint")
+    parser.add_argument("--policy", type=Path, required=True,
+                        help="a pretrained_model folder of an ocn or ompn checkpoint")
     parser.add_argument("--root", type=Path, required=True, help="the LeRobot dataset's folder")
     parser.add_argument("--repo-id", required=True, help="the dataset's repo id, recorded in the output")
     parser.add_argument("--split", default="val", help="split of meta/info.json to parse: train, val or all")
@@ -82,26 +86,41 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
 
     from ocn_data.episodes_table import load_episodes, read_craft_info, split_episodes
     from ocn_data.mcap_log import check_new_log
-    from tools.craft_rollouts import free_run_success, option_subtask_success
-    from tools.episode_parsing import load_ocn, parse_episodes
-    from tools.parsing_metrics import boundaries_from_labels, parsing_scores
+    from tools.craft_rollouts import OptionPolicy, free_run_success, option_subtask_success
+    from tools.episode_parsing import load_policy, parser_of, score_segmentations
 
     if args.mcap is not None:
         check_new_log(args.mcap)
     info = read_craft_info(args.root, "ocn-eval")
-    policy, preprocessor, postprocessor = load_ocn(args.policy, args.device)
+    policy, preprocessor, postprocessor = load_policy(args.policy, args.device)
+    parser = parser_of(policy)
+    has_options = isinstance(policy, OptionPolicy)
+    if args.mcap is not None and not has_options:
+        raise ValueError(f"--mcap logs the option choices of a policy made of options; `{policy.name}` has none.")
     torch.manual_seed(args.seed)  # the policy samples its actions: same seed, same rollouts
     started = time.perf_counter()
     episodes = load_episodes(args.root, split_episodes(args.root, args.split), args.max_episodes)
-    options = [parse.option for parse in parse_episodes(policy, preprocessor, episodes, args.batch_size)]
-    segments = [episodes.subtask_index[i, :n] for i, n in enumerate(episodes.lengths)]
-    subtasks = [episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)]
-    scores = parsing_scores(segments, subtasks, [boundaries_from_labels(o) for o in options], options)
+    parses = parser.segment(policy, preprocessor, episodes, args.batch_size)
+    scores = score_segmentations(episodes, parses)
 
     mode = _recording_settings(args.root)["mode"]
     tasks = sorted(set(episodes.tasks), key=policy.config.tasks.index)
     letters = _subtask_letters(tasks, mode)
-    table = option_subtask_success(policy, preprocessor, postprocessor, letters, args.rollouts, mode, args.seed)
+    option_table = None
+    not_applicable = {}
+    if has_options:
+        table = option_subtask_success(policy, preprocessor, postprocessor, letters, args.rollouts, mode, args.seed)
+        option_table = {
+            "subtasks": letters,
+            "rows": [f"option {i}" for i in range(table.shape[0])],
+            "table": table.round(4).tolist(),
+        }
+    else:
+        not_applicable["option_subtask_success"] = (
+            f"`{policy.name}` has no options that act alone; the table runs each frozen option on each subtask"
+        )
+    if parser.no_labels:
+        not_applicable["nmi"] = parser.no_labels
     log = None
     if args.mcap is not None:
         from envs.craft.observation import OBS_NAMES
@@ -115,18 +134,16 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
             log.close()
     return {
         **scores,
-        "option_subtask_success": {
-            "subtasks": letters,
-            "rows": [f"option {i}" for i in range(table.shape[0])],
-            "table": table.round(4).tolist(),
-        },
+        "option_subtask_success": option_table,
+        **({"not_applicable": not_applicable} if not_applicable else {}),
         "success_rate": success,
         "mean_success_rate": float(np.mean(list(success.values()))),
-        "episodes_parsed": len(options),
+        "episodes_parsed": len(parses),
         "frames_parsed": int(episodes.lengths.sum()),
         "split": args.split,
         "rollouts_per_cell": args.rollouts,
         "policy": str(args.policy),
+        "policy_type": policy.name,
         "dataset": {"root": str(args.root), "repo_id": args.repo_id},
         "wall_s": round(time.perf_counter() - started, 2),
     }
@@ -142,14 +159,17 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     table = result["option_subtask_success"]
-    png = args.out.with_suffix(".png")
-    run = "/".join(args.policy.parts[-6:-3])
-    plot_option_table(np.array(table["table"]), table["subtasks"], png, f"option x subtask success\n{run}")
+    written = [args.out]
+    if table is not None:
+        written.append(args.out.with_suffix(".png"))
+        run = "/".join(args.policy.parts[-6:-3])
+        plot_option_table(np.array(table["table"]), table["subtasks"], written[-1], f"option x subtask success\n{run}")
+    nmi = "n/a" if result["nmi"] is None else f"{result['nmi']:.3f}"
     print(
         f"F1@0 {result['f1_tol0']:.3f}  F1@1 {result['f1_tol1']:.3f}  align {result['align_acc']:.3f}  "
-        f"NMI {result['nmi']:.3f}  success {result['success_rate']}"
+        f"NMI {nmi}  success {result['success_rate']}"
     )
-    print(f"wrote {args.out} and {png}")
+    print(f"wrote {' and '.join(map(str, written))}")
     return 0
 
 

@@ -21,7 +21,7 @@ class CellOutput(NamedTuple):
     end: Tensor | None
 
 
-def _stacked_uniform(n_modules: int, fan_in: int, *shape: int) -> nn.Parameter:
+def stacked_uniform(n_modules: int, fan_in: int, *shape: int) -> nn.Parameter:
     """nn.Linear's default init, drawn independently for each module."""
     bound = 1.0 / math.sqrt(fan_in)
     return nn.Parameter(torch.empty(n_modules, *shape).uniform_(-bound, bound))
@@ -51,19 +51,19 @@ class StackedCell(nn.Module):
         self.n_out = n_out
         self.with_end = with_end
         fan_in = in_dim + hidden_size
-        self.w_x = _stacked_uniform(n_modules, fan_in, in_dim, mlp_hidden_size)
-        self.w_h = _stacked_uniform(n_modules, fan_in, hidden_size, mlp_hidden_size)
-        self.b_in = _stacked_uniform(n_modules, fan_in, 1, mlp_hidden_size)
+        self.w_x = stacked_uniform(n_modules, fan_in, in_dim, mlp_hidden_size)
+        self.w_h = stacked_uniform(n_modules, fan_in, hidden_size, mlp_hidden_size)
+        self.b_in = stacked_uniform(n_modules, fan_in, 1, mlp_hidden_size)
         self.w_mlp = nn.ParameterList(
-            _stacked_uniform(n_modules, mlp_hidden_size, mlp_hidden_size, mlp_hidden_size)
+            stacked_uniform(n_modules, mlp_hidden_size, mlp_hidden_size, mlp_hidden_size)
             for _ in range(mlp_depth - 1)
         )
         self.b_mlp = nn.ParameterList(
-            _stacked_uniform(n_modules, mlp_hidden_size, 1, mlp_hidden_size) for _ in range(mlp_depth - 1)
+            stacked_uniform(n_modules, mlp_hidden_size, 1, mlp_hidden_size) for _ in range(mlp_depth - 1)
         )
         head_width = n_out + hidden_size + int(with_end)
-        self.w_out = _stacked_uniform(n_modules, mlp_hidden_size, mlp_hidden_size, head_width)
-        self.b_out = _stacked_uniform(n_modules, mlp_hidden_size, 1, head_width)
+        self.w_out = stacked_uniform(n_modules, mlp_hidden_size, mlp_hidden_size, head_width)
+        self.b_out = stacked_uniform(n_modules, mlp_hidden_size, 1, head_width)
 
     def project(self, x: Tensor) -> Tensor:
         """Observation part of the first layer, bias included: x [..., B, in] -> [..., N, B, d_mlp]."""

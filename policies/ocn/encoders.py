@@ -8,7 +8,7 @@ from torch import Tensor, nn
 
 from envs.craft.observation import OMPN_DIM, ompn_features
 
-from .configuration_ocn import OCNConfig
+from policies.sequence import SequenceConfig
 
 
 class CraftEncoder(nn.Module):
@@ -32,7 +32,7 @@ class IdentityEncoder(nn.Module):
         return state.float()
 
 
-def make_encoder(config: OCNConfig) -> nn.Module:
+def make_encoder(config: SequenceConfig) -> nn.Module:
     """Encoder named by `config.obs_encoder`; it exposes its output width as `out_dim`."""
     if config.obs_encoder == "craft":
         return CraftEncoder()

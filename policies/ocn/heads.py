@@ -11,7 +11,7 @@ import math
 import torch
 from torch import Tensor
 
-from .configuration_ocn import OCNConfig
+from policies.sequence import SequenceConfig
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -75,7 +75,7 @@ class GaussianHead:
         return chosen_mean + torch.exp(chosen_log_std) * torch.randn_like(chosen_mean)
 
 
-def make_action_head(config: OCNConfig) -> DiscreteHead | GaussianHead:
+def make_action_head(config: SequenceConfig) -> DiscreteHead | GaussianHead:
     """Head named by `config.action_type`."""
     if config.action_type == "discrete":
         return DiscreteHead(config.n_actions)

@@ -1,8 +1,7 @@
 """OCN as a LeRobot policy: batch plumbing, the NLL loss (eq. 18), stateful inference and parsing.
 
-Batches arrive as LeRobot builds them: `observation.state` [B, T, S] and `action` [B, T, A]
-windows with `*_is_pad` masks [B, T] and the task strings in `batch["task"]`. How a window becomes
-a training sequence is `OCNConfig.window_start`'s business (see its docstring).
+Batch plumbing shared with the other whole-episode policies (windows, masks, task table) is
+`policies.sequence`'s.
 """
 
 from collections.abc import Sequence
@@ -12,16 +11,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from lerobot.datasets.io_utils import load_episodes
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
+from policies.sequence import SequencePolicy, frame_mask, training_windows, window_nll
 
 from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
 from .heads import make_action_head, mixture_log_prob
 from .recurrence import HardState, OCNCore, OCNState, StepOutput
-
-PAD_KEYS = (f"{ACTION}_is_pad", f"{OBS_STATE}_is_pad")
 
 
 @dataclass
@@ -39,89 +36,14 @@ class StepReport:
     decided: Tensor | None = None
 
 
-def tasks_from_meta(dataset_meta: Any) -> list[str]:
-    """Task strings of a LeRobot dataset, in task-index order."""
-    if dataset_meta.tasks is None:
-        return []
-    return [str(task) for task in dataset_meta.tasks.sort_values("task_index").index]
-
-
-def frame_mask(batch: dict[str, Any]) -> Tensor:
-    """Frames [B, T] that are real data: neither the action nor the state is padding."""
-    valid = torch.ones(batch[OBS_STATE].shape[:2], dtype=torch.bool, device=batch[OBS_STATE].device)
-    for key in PAD_KEYS:
-        if key in batch:
-            valid &= ~batch[key].bool()
-    return valid
-
-
-def align_to_first_frame(valid: Tensor, length: int, *windows: Tensor) -> tuple[Tensor, ...]:
-    """Shift each row of windows [B, W', ...] so that it starts at its first real frame.
-
-    Returns the mask [B, length] of the shifted rows, then each window cut to [B, length, ...].
-    Positions past the window's end read its last frame and are masked out.
-    """
-    width = valid.shape[1]
-    first = valid.int().argmax(dim=1)
-    position = first.unsqueeze(1) + torch.arange(length, device=valid.device)
-    inside = position < width
-    index = position.clamp_max(width - 1)
-    mask = valid.gather(1, index) & inside
-    shifted = []
-    for window in windows:
-        gather_index = index.view(*index.shape, *([1] * (window.dim() - 2))).expand(-1, -1, *window.shape[2:])
-        shifted.append(window.gather(1, gather_index))
-    return (mask, *shifted)
-
-
-def trim_trailing_padding(mask: Tensor, *windows: Tensor) -> tuple[Tensor, ...]:
-    """Cut mask [B, W] and windows [B, W, ...] after the last step that any row uses.
-
-    The recurrence costs the same per step whether a step is padding or not, and windows hold
-    whole episodes padded to the longest one the dataset may have: most batches end long before.
-    """
-    used = int(mask.any(0).nonzero().max().item()) + 1 if mask.any() else 1
-    return tuple(window[:, :used] for window in (mask, *windows))
-
-
-def episode_lengths(dataset_meta: Any) -> list[int]:
-    """Frames per episode of a LeRobot dataset (its episode table is read from disk if not loaded yet)."""
-    if dataset_meta.total_episodes == 0:
-        return []
-    episodes = dataset_meta.episodes if dataset_meta.episodes is not None else load_episodes(dataset_meta.root)
-    return [int(length) for length in episodes["length"]]
-
-
-class OCNPolicy(PreTrainedPolicy):
+class OCNPolicy(SequencePolicy, PreTrainedPolicy):
     """Option-Controller Network: a shared controller over N options, one initial state per task."""
 
     config_class = OCNConfig
     name = "ocn"
 
-    def __init__(
-        self,
-        config: OCNConfig,
-        dataset_stats: dict[str, dict[str, Tensor]] | None = None,
-        dataset_meta: Any | None = None,
-        **kwargs: Any,
-    ) -> None:
-        """`dataset_stats` is accepted for LeRobot's factory but unused: normalisation lives in the
-        processors. `dataset_meta` fills `config.tasks` when it is empty, so the saved config keeps them."""
-        super().__init__(config)
-        config.validate_features()
-        if not config.tasks and dataset_meta is not None:
-            config.tasks = tasks_from_meta(dataset_meta)
-        if not config.tasks:
-            raise ValueError("OCN needs its task list: set `tasks` or build the policy from a dataset.")
-        if dataset_meta is not None and config.window_start == "episode":
-            longest = max(episode_lengths(dataset_meta), default=0)
-            if longest > config.window_size:
-                raise ValueError(
-                    f"The dataset has episodes of up to {longest} frames but window_size is "
-                    f"{config.window_size}: with window_start='episode' a window must hold a whole "
-                    f"episode. Set --policy.window_size={longest} or more, or --policy.window_start=any."
-                )
-        self._task_ids = {task: i for i, task in enumerate(config.tasks)}
+    def __init__(self, config: OCNConfig, **kwargs: Any) -> None:
+        super().__init__(config, **kwargs)
         self.encoder = make_encoder(config)
         self.head = make_action_head(config)
         self.core = OCNCore(
@@ -150,18 +72,6 @@ class OCNPolicy(PreTrainedPolicy):
         self._state: OCNState | HardState | None = None
         self.last_step: StepReport | None = None
 
-    def task_index(self, tasks: Sequence[str] | str | None, batch_size: int) -> Tensor:
-        """Map task strings to rows of the per-task initial controller states."""
-        if tasks is None:
-            raise ValueError(f"The batch has no 'task'; OCN needs one of {self.config.tasks}.")
-        if isinstance(tasks, str):
-            tasks = [tasks] * batch_size
-        for task in tasks:
-            if task not in self._task_ids:
-                raise ValueError(f"Unknown task {task!r}; this OCN knows the tasks {self.config.tasks}.")
-        device = self.core.controller_init.device
-        return torch.tensor([self._task_ids[task] for task in tasks], dtype=torch.long, device=device)
-
     def _unroll(self, state: Tensor, tasks: Sequence[str]) -> StepOutput:
         """Recurrence over windows [B, T, S] that each start an episode; outputs are time-major."""
         batch, steps = state.shape[:2]
@@ -171,15 +81,6 @@ class OCNPolicy(PreTrainedPolicy):
         start[0] = True
         initial = self.core.initial_state(self.task_index(tasks, batch))
         return self.core.unroll(x, initial, start)[1]
-
-    def _training_windows(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
-        """(mask [B, W], state [B, W, S], action [B, W, ...]) of sequences that each start at t = 1."""
-        valid = frame_mask(batch)
-        if self.config.window_start == "any":
-            windows = (valid, batch[OBS_STATE], batch[ACTION])
-        else:
-            windows = align_to_first_frame(valid, self.config.window_size, batch[OBS_STATE], batch[ACTION])
-        return trim_trailing_padding(*windows)
 
     def _action_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
         """log p^a_t(a_t) [B, T] for time-major outputs and batch-major actions [B, T, A].
@@ -192,22 +93,9 @@ class OCNPolicy(PreTrainedPolicy):
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
-        mask, state, action = self._training_windows(batch)
+        mask, state, action = training_windows(self.config, batch)
         out = self._unroll(state, batch["task"])
-        mask = mask.float()
-        frames = mask.sum(1)
-        nll = -self._action_log_prob(out, action) * mask
-        per_window = nll.sum(1) / frames.clamp_min(1.0)
-        later = mask[:, 1:]
-        end = out.end[1:].detach().transpose(0, 1)
-        stats = {
-            "nll": per_window.mean().item(),
-            "frames_used": int(frames.sum().item()),
-            "mean_end": float((end * later).sum() / later.sum().clamp_min(1.0)),
-        }
-        if reduction == "none":
-            return per_window, stats
-        return per_window.mean(), stats
+        return window_nll(self._action_log_prob(out, action), mask, reduction, {"mean_end": out.end})
 
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:
@@ -279,8 +167,3 @@ class OCNPolicy(PreTrainedPolicy):
         weights = torch.nn.functional.one_hot(option, self.config.n_options).to(out.logits.dtype)
         action = self.head.choose(weights, out.logits, greedy)
         return action, out.hidden, out.end.gather(0, option.unsqueeze(0)).squeeze(0)
-
-    @torch.no_grad()
-    def select_action(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
-        """One action [B, A] per env; the recurrent state persists until `reset()`."""
-        return self.predict_action_chunk(batch)[:, 0]

@@ -11,11 +11,11 @@ import torch
 
 from lerobot.processor import PolicyAction, PolicyProcessorPipeline, make_default_pre_post_processors
 
-from .configuration_ocn import OCNConfig
+from policies.sequence import SequenceConfig
 
 
 def make_ocn_pre_post_processors(
-    config: OCNConfig,
+    config: SequenceConfig,
     dataset_stats: dict[str, dict[str, torch.Tensor]] | None = None,
 ) -> tuple[
     PolicyProcessorPipeline[dict[str, Any], dict[str, Any]],
