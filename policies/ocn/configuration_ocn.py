@@ -40,6 +40,15 @@ class OCNConfig(PreTrainedConfig):
     Both average the NLL over each window's real frames first, then over windows: sampling windows
     at every frame weights an episode by its length, so this is the per-frame mean NLL of the
     dataset in expectation.
+
+    `skip_long_episodes` (with "episode" windows) trains on datasets whose rare longest episodes
+    exceed `window_size` instead of refusing them: a window whose first position is a real frame
+    may start mid-episode and is left out of the loss, so an episode longer than `window_size`
+    trains on its first `window_size` frames only (from the windows sampled there). The padding
+    flags cannot tell a window sampled exactly at frame `window_size - 1` from a later one, so that
+    one is left out too. Dial's DART-noised demonstrations are mostly under 100 frames with a tail
+    to about 300; a window loads 2 * window_size - 1 frames, so sizing it for the tail would
+    nearly triple LeRobot's loading cost for a few episodes.
     """
 
     n_options: int = 3
@@ -50,6 +59,7 @@ class OCNConfig(PreTrainedConfig):
 
     window_size: int = 32
     window_start: str = "episode"
+    skip_long_episodes: bool = False
 
     obs_encoder: str = "craft"
     action_type: str = "discrete"
@@ -138,9 +148,13 @@ class OCNConfig(PreTrainedConfig):
             raise ValueError(f"OCN needs an `{ACTION}` output feature.")
         if self.obs_encoder == "craft" and tuple(state.shape) != (CRAFT_STATE_DIM,):
             raise ValueError(
-                f"The craft encoder expects a compact state of shape ({CRAFT_STATE_DIM},), got {state.shape}."
+                f"The craft encoder expects a compact state of shape ({CRAFT_STATE_DIM},), got {state.shape}; "
+                "float states (Dial) take --policy.obs_encoder=identity."
             )
         if self.action_type == "discrete" and tuple(action.shape) != (1,):
-            raise ValueError(f"Discrete actions must be stored as one index, shape (1,); got {action.shape}.")
+            raise ValueError(
+                f"Discrete actions must be stored as one index, shape (1,); got {action.shape}: "
+                "vector actions (Dial's motor controls) take --policy.action_type=continuous."
+            )
         if self.action_type == "discrete" and self.n_actions < 2:
             raise ValueError(f"n_actions must be >= 2 for discrete actions, got {self.n_actions}.")

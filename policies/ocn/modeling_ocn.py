@@ -113,13 +113,14 @@ class OCNPolicy(PreTrainedPolicy):
             config.tasks = tasks_from_meta(dataset_meta)
         if not config.tasks:
             raise ValueError("OCN needs its task list: set `tasks` or build the policy from a dataset.")
-        if dataset_meta is not None and config.window_start == "episode":
+        if dataset_meta is not None and config.window_start == "episode" and not config.skip_long_episodes:
             longest = max(episode_lengths(dataset_meta), default=0)
             if longest > config.window_size:
                 raise ValueError(
                     f"The dataset has episodes of up to {longest} frames but window_size is "
                     f"{config.window_size}: with window_start='episode' a window must hold a whole "
-                    f"episode. Set --policy.window_size={longest} or more, or --policy.window_start=any."
+                    f"episode. Set --policy.window_size={longest} or more, --policy.skip_long_episodes=true "
+                    "or --policy.window_start=any."
                 )
         self._task_ids = {task: i for i, task in enumerate(config.tasks)}
         self.encoder = make_encoder(config)
@@ -177,6 +178,9 @@ class OCNPolicy(PreTrainedPolicy):
         if self.config.window_start == "any":
             windows = (valid, batch[OBS_STATE], batch[ACTION])
         else:
+            if self.config.skip_long_episodes:
+                # A real first position may mean the episode began before the window: leave it out.
+                valid = valid & ~valid[:, :1]
             windows = align_to_first_frame(valid, self.config.window_size, batch[OBS_STATE], batch[ACTION])
         return trim_trailing_padding(*windows)
 
@@ -190,7 +194,8 @@ class OCNPolicy(PreTrainedPolicy):
         return mixture_log_prob(out.weights, component).transpose(0, 1)
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
-        """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
+        """NLL of the mixed action distribution: mean over each window's real frames, then over the
+        windows that have any (skipped long-episode windows have none)."""
         mask, state, action = self._training_windows(batch)
         out = self._unroll(state, batch["task"])
         mask = mask.float()
@@ -206,7 +211,7 @@ class OCNPolicy(PreTrainedPolicy):
         }
         if reduction == "none":
             return per_window, stats
-        return per_window.mean(), stats
+        return per_window.sum() / (frames > 0).sum().clamp_min(1), stats
 
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:
