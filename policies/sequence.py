@@ -50,9 +50,18 @@ class SequenceConfig(PreTrainedConfig):
     - "any": the window is the `window_size` frames from the sampled frame on, and its first frame
       is treated as t = 1 of a fresh episode. Half the frames to load, but the model is told that a
       task restarts where it does not.
-    Both average the NLL over each window's real frames first, then over windows: sampling windows
-    at every frame weights an episode by its length, so this is the per-frame mean NLL of the
-    dataset in expectation.
+    Both average the NLL over each window's real frames first, then over the windows that have
+    any: sampling windows at every frame weights an episode by its length, so this is the per-frame
+    mean NLL of the dataset in expectation.
+
+    `skip_long_episodes` (with "episode" windows) trains on datasets whose rare longest episodes
+    exceed `window_size` instead of refusing them: a window whose first position is a real frame
+    may start mid-episode and is left out of the loss, so an episode longer than `window_size`
+    trains on its first `window_size` frames only (from the windows sampled there). The padding
+    flags cannot tell a window sampled exactly at frame `window_size - 1` from a later one, so that
+    one is left out too. Dial's DART-noised demonstrations are mostly under 100 frames with a tail
+    to about 300; a window loads 2 * window_size - 1 frames, so sizing it for the tail would
+    nearly triple LeRobot's loading cost for a few episodes.
     """
 
     # The model's name in error messages.
@@ -60,6 +69,7 @@ class SequenceConfig(PreTrainedConfig):
 
     window_size: int = 32
     window_start: str = "episode"
+    skip_long_episodes: bool = False
 
     obs_encoder: str = "craft"
     action_type: str = "discrete"
@@ -133,10 +143,14 @@ class SequenceConfig(PreTrainedConfig):
             raise ValueError(f"{self.model_name} needs an `{ACTION}` output feature.")
         if self.obs_encoder == "craft" and tuple(state.shape) != (CRAFT_STATE_DIM,):
             raise ValueError(
-                f"The craft encoder expects a compact state of shape ({CRAFT_STATE_DIM},), got {state.shape}."
+                f"The craft encoder expects a compact state of shape ({CRAFT_STATE_DIM},), got {state.shape}; "
+                "float states (Dial) take --policy.obs_encoder=identity."
             )
         if self.action_type == "discrete" and tuple(action.shape) != (1,):
-            raise ValueError(f"Discrete actions must be stored as one index, shape (1,); got {action.shape}.")
+            raise ValueError(
+                f"Discrete actions must be stored as one index, shape (1,); got {action.shape}: "
+                "vector actions (Dial's motor controls) take --policy.action_type=continuous."
+            )
         if self.action_type == "discrete" and self.n_actions < 2:
             raise ValueError(f"n_actions must be >= 2 for discrete actions, got {self.n_actions}.")
 
@@ -168,13 +182,14 @@ def prepare_config(config: SequenceConfig, dataset_meta: Any | None) -> dict[str
         config.tasks = tasks_from_meta(dataset_meta)
     if not config.tasks:
         raise ValueError(f"{name} needs its task list: set `tasks` or build the policy from a dataset.")
-    if dataset_meta is not None and config.window_start == "episode":
+    if dataset_meta is not None and config.window_start == "episode" and not config.skip_long_episodes:
         longest = max(episode_lengths(dataset_meta), default=0)
         if longest > config.window_size:
             raise ValueError(
                 f"The dataset has episodes of up to {longest} frames but window_size is "
                 f"{config.window_size}: with window_start='episode' a window must hold a whole "
-                f"episode. Set --policy.window_size={longest} or more, or --policy.window_start=any."
+                f"episode. Set --policy.window_size={longest} or more, --policy.skip_long_episodes=true "
+                "or --policy.window_start=any."
             )
     return {task: i for i, task in enumerate(config.tasks)}
 
@@ -213,6 +228,9 @@ def training_windows(config: SequenceConfig, batch: dict[str, Any]) -> tuple[Ten
     if config.window_start == "any":
         windows = (valid, batch[OBS_STATE], batch[ACTION])
     else:
+        if config.skip_long_episodes:
+            # A real first position may mean the episode began before the window: leave it out.
+            valid = valid & ~valid[:, :1]
         windows = align_to_first_frame(valid, config.window_size, batch[OBS_STATE], batch[ACTION])
     return trim_trailing_padding(*windows)
 
@@ -231,7 +249,8 @@ def window_nll(
     log_prob: Tensor, mask: Tensor, reduction: str, after_first: dict[str, Tensor]
 ) -> tuple[Tensor, dict[str, float]]:
     """The training loss from log p(a_t) [B, T] of windows with real frames mask [B, T]: the NLL's
-    mean over each window's real frames, then over windows (reduction "none": per window [B]).
+    mean over each window's real frames, then over the windows that have any (skipped long-episode
+    windows have none; reduction "none": per window [B]).
 
     Stats: nll, frames_used, and the mean over real frames t > 1 of each `after_first` quantity
     (time-major [T, B], detached here): a model's per-step readout, meaningless at t = 1.
@@ -243,7 +262,9 @@ def window_nll(
     stats = {"nll": per_window.mean().item(), "frames_used": int(frames.sum().item())}
     for name, value in after_first.items():
         stats[name] = float((value[1:].detach().transpose(0, 1) * later).sum() / later.sum().clamp_min(1.0))
-    return (per_window if reduction == "none" else per_window.mean()), stats
+    if reduction == "none":
+        return per_window, stats
+    return per_window.sum() / (frames > 0).sum().clamp_min(1), stats
 
 
 class SequencePolicy:

@@ -86,7 +86,8 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
 
     from ocn_data.episodes_table import load_episodes, read_craft_info, split_episodes
     from ocn_data.mcap_log import check_new_log
-    from tools.craft_rollouts import OptionPolicy, free_run_success, option_subtask_success
+    from tools.craft_rollouts import free_run_success, option_subtask_success
+    from tools.rollouts import OptionPolicy
     from tools.episode_parsing import load_policy, parser_of, score_segmentations
 
     if args.mcap is not None:

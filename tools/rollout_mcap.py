@@ -40,6 +40,10 @@ class RolloutTrace:
         for name, value in step.items():
             getattr(self, name).append(np.asarray(value))
 
+    def rows(self, index: np.ndarray | slice) -> RolloutTrace:
+        """The records of the selected envs only (a batch that ran several tasks, split by task)."""
+        return RolloutTrace(**{name: [step[index] for step in steps] for name, steps in vars(self).items()})
+
 
 class RolloutMcapWriter(JsonMcapLog):
     """An MCAP file of policy rollouts; `write(task, trace, success)` after each batch, then `close()`."""

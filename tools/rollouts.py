@@ -1,0 +1,144 @@
+"""Batched rollouts of a trained OCN in any batched world: free-run success per task, and each
+frozen option alone on each subtask (paper table 1).
+
+One loop per idea for every world. A world (`RolloutWorld`) says how to start a batch of episodes
+(one task and env seed per env) and how the policy's postprocessed actions become env actions; its
+batch simulator (`CraftBatch`, `DialBatch`) supplies `step`, `done`, `progress` and `task_len`.
+Every episode of a call runs in one batch (all tasks, and for the table all option and subtask
+pairs, side by side), so the policy and its pre/post-processors, which actions go through as
+under `lerobot-eval`, run once per step for all of them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.utils.constants import OBS_STATE
+from policies.ocn import OCNPolicy
+from tools.episode_parsing import Processor
+from tools.rollout_mcap import RolloutMcapWriter, RolloutTrace
+
+
+@runtime_checkable
+class OptionPolicy(Protocol):
+    """A policy made of options that can act alone (OCN): what the option x subtask table runs, and
+    whose per-step option choice (`last_step`, after each `select_action`) a rollout log records."""
+
+    last_step: Any
+
+    def act_with_options(
+        self,
+        state: torch.Tensor,
+        option: torch.Tensor,
+        option_h: torch.Tensor | None,
+        restart: torch.Tensor,
+        greedy: bool,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+
+
+@dataclass(frozen=True)
+class RolloutWorld:
+    """What a world contributes to the rollouts.
+
+    `start(tasks, seeds)` returns a fresh batch simulator with one env per task and env seed and its
+    first states [envs, S]; `env_action` turns postprocessed actions [envs, A] (numpy) into what the
+    simulator's `step` takes; `policy_task` names a task as the policy's tasks do.
+    """
+
+    start: Callable[[Sequence[str], Sequence[int]], tuple[Any, np.ndarray]]
+    env_action: Callable[[np.ndarray], np.ndarray]
+    policy_task: Callable[[str], str] = str
+
+
+def _observation(obs: np.ndarray, tasks: Sequence[str], preprocessor: Processor) -> dict[str, Any]:
+    """The env's states as float32, with one task string per env, through the preprocessor."""
+    return preprocessor({OBS_STATE: torch.from_numpy(obs).float(), "task": list(tasks)})
+
+
+def _step(world: RolloutWorld, batch: Any, action: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Step every env with the policy's actions; returns the new states and rewards."""
+    obs, reward, *_ = batch.step(world.env_action(action.cpu().numpy()))
+    return obs, reward
+
+
+def _episodes_of(items: Sequence[Any], episodes: int, seed: int) -> tuple[list[Any], list[int]]:
+    """`episodes` envs per item, item-major, each item's envs on env seeds seed, seed+1, ..."""
+    return [item for item in items for _ in range(episodes)], [seed + k for _ in items for k in range(episodes)]
+
+
+@torch.no_grad()
+def free_run_success(
+    policy: PreTrainedPolicy,
+    preprocessor: Processor,
+    postprocessor: Processor,
+    world: RolloutWorld,
+    tasks: Sequence[str],
+    episodes: int,
+    seed: int = 0,
+    log: RolloutMcapWriter | None = None,
+) -> dict[str, float]:
+    """Success rate per task (keyed as given) of the whole policy over `episodes` fresh episodes each;
+    with `log` (an `OptionPolicy` only), every step and the policy's p^c, option and termination also
+    go to that MCAP."""
+    rows, seeds = _episodes_of(tasks, episodes, seed)
+    named = [world.policy_task(task) for task in rows]
+    batch, obs = world.start(rows, seeds)
+    trace = RolloutTrace()
+    policy.reset()
+    while not batch.done.all():
+        active = ~batch.done
+        action = postprocessor(policy.select_action(_observation(obs, named, preprocessor)))
+        if log is not None:
+            step = policy.last_step
+            trace.add(active=active, state=obs, action=action.cpu().numpy(), p_c=step.p_c.cpu().numpy(),
+                      option=step.option.cpu().numpy(), end=step.end.cpu().numpy())
+        obs, reward = _step(world, batch, action)
+        if log is not None:
+            trace.add(reward=reward, done=batch.done.copy())
+    policy.reset()
+    success = (batch.progress == batch.task_len).reshape(len(tasks), episodes)
+    if log is not None:
+        for k, task in enumerate(tasks):
+            rows_of_task = slice(k * episodes, (k + 1) * episodes)
+            log.write(named[k * episodes], trace.rows(rows_of_task), success[k])
+    return {task: float(success[k].mean()) for k, task in enumerate(tasks)}
+
+
+@torch.no_grad()
+def option_subtask_success(
+    policy: OCNPolicy,
+    preprocessor: Processor,
+    postprocessor: Processor,
+    world: RolloutWorld,
+    subtasks: Sequence[str],
+    episodes: int,
+    seed: int = 0,
+) -> np.ndarray:
+    """Paper table 1: [n_options, len(subtasks)] fraction of fresh episodes of the one-subtask task
+    `subtasks[j]` that option i, run alone from its initial state, completes before its termination
+    fires (e > 0.5) or the env's step limit."""
+    greedy = policy.config.inference_mode == "greedy"
+    n_options = policy.config.n_options
+    pairs = [(i, subtask) for i in range(n_options) for subtask in subtasks]
+    rows, seeds = _episodes_of(pairs, episodes, seed)
+    named = [world.policy_task(subtask) for _, subtask in rows]
+    batch, obs = world.start([subtask for _, subtask in rows], seeds)
+    option = torch.tensor([i for i, _ in rows], dtype=torch.long)
+    stopped = np.zeros(len(rows), dtype=bool)
+    option_h, first = None, True
+    while not (batch.done | stopped).all():
+        state = _observation(obs, named, preprocessor)[OBS_STATE]
+        restart = torch.full((len(rows),), first)
+        action, option_h, end = policy.act_with_options(state, option, option_h, restart, greedy)
+        if not first:
+            stopped |= (end.cpu().numpy() > 0.5) & ~batch.done
+        first = False
+        obs, _ = _step(world, batch, postprocessor(action))
+    completed = (batch.progress == 1) & ~stopped
+    return completed.reshape(n_options, len(subtasks), episodes).mean(axis=2)
