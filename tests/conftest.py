@@ -8,15 +8,75 @@ live in test_lerobot_integration.py.
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
 
 import lerobot_policy_ocn  # noqa: F401  (registers `ocn` and `craft` as LeRobot's CLIs do)
+from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.record_demos import main as record_demos
 
 CRAFT_REPO_ID = "local/craft_small"
+
+
+def train_on_craft(policy_type: str, root: Path, out: Path, steps: int, *flags: str) -> Path:
+    """`lerobot-train --policy.type=POLICY_TYPE` for a few steps of batch 4 on the Craft dataset at
+    `root` (plus the policy's own `flags`); returns the final checkpoint's pretrained_model folder."""
+    command = [
+        str(Path(sys.executable).parent / "lerobot-train"), f"--policy.type={policy_type}",
+        f"--dataset.repo_id={CRAFT_REPO_ID}", f"--dataset.root={root}", "--policy.device=cpu",
+        "--policy.push_to_hub=false", "--wandb.enable=false", "--env_eval_freq=0", f"--steps={steps}",
+        "--batch_size=4", "--num_workers=0", f"--output_dir={out}", *flags,
+    ]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}  # one thread: far faster than two on a shared machine
+    proc = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=out.parent, env=env)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return out / "checkpoints" / f"{steps:06d}" / "pretrained_model"
+
+
+def reload_checkpoint(path: Path, policy_class: type) -> tuple[torch.nn.Module, Any]:
+    """A trained checkpoint loaded as the tools load it (`load_policy`), after checking that it is a
+    `policy_class` and that LeRobot's own `from_pretrained` reads the same weights; returns the
+    policy and its preprocessor."""
+    from tools.episode_parsing import load_policy
+
+    policy, preprocessor, _ = load_policy(path)
+    assert isinstance(policy, policy_class)
+    again = policy_class.from_pretrained(path)
+    for key, value in policy.state_dict().items():
+        torch.testing.assert_close(value, again.state_dict()[key], rtol=0, atol=0, msg=key)
+    return policy, preprocessor
+
+
+def episode_windows(lengths: list[int], state_dim: int, tasks: Sequence[str], steps: int = 6, seed: int = 1) -> dict:
+    """A batch of windows that each start an episode, real for their first lengths[b] frames: random
+    states, actions among 4, and the tasks taken in turn."""
+    gen = torch.Generator().manual_seed(seed)
+    return {
+        OBS_STATE: torch.randn(len(lengths), steps, state_dim, generator=gen),
+        ACTION: torch.randint(0, 4, (len(lengths), steps, 1), generator=gen).float(),
+        f"{ACTION}_is_pad": torch.arange(steps)[None] >= torch.tensor(lengths)[:, None],
+        "task": [tasks[i % len(tasks)] for i in range(len(lengths))],
+    }
+
+
+def craft_rollout(policy: torch.nn.Module) -> dict:
+    """What `lerobot-eval` runs: one batched rollout of the policy in 2 Craft envs on task AC, which
+    must run both episodes to their end."""
+    from lerobot.envs.factory import make_env, make_env_config
+    from lerobot.scripts.lerobot_eval import rollout
+
+    vec = make_env(make_env_config("craft", task="AC"), n_envs=2)["craft"][0]
+    out = rollout(vec, policy, lambda x: x, lambda x: x, lambda x: x, lambda x: x, seeds=[0, 1])
+    vec.close()
+    assert out["action"].shape[0] == 2 and out["done"].any(1).all()
+    return out
 
 
 @pytest.fixture(scope="session")

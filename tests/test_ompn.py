@@ -6,9 +6,6 @@ Craft rollout `lerobot-eval` runs) and through `ocn-eval`'s model-agnostic parsi
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,11 +14,9 @@ import torch
 from torch.nn import functional as F
 
 import lerobot_policy_ocn  # noqa: F401  (registers `ompn` and `craft` as LeRobot's CLIs do)
-from conftest import CRAFT_REPO_ID
+from conftest import CRAFT_REPO_ID, craft_rollout, episode_windows, reload_checkpoint, train_on_craft
 from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
-from lerobot.envs.factory import make_env, make_env_config
-from lerobot.scripts.lerobot_eval import rollout
 from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import load_episodes, split_episodes
 from policies.ompn import OMPNConfig, OMPNPolicy
@@ -58,16 +53,8 @@ def make_policy(action_type: str = "discrete", action_dim: int = 1, **overrides)
     return OMPNPolicy(OMPNConfig(**settings))
 
 
-def make_batch(lengths: list[int], steps: int = 6, seed: int = 1) -> dict:
-    """Windows that each start an episode, real for their first lengths[b] frames."""
-    gen = torch.Generator().manual_seed(seed)
-    batch = len(lengths)
-    return {
-        OBS_STATE: torch.randn(batch, steps, STATE_DIM, generator=gen),
-        ACTION: torch.randint(0, 4, (batch, steps, 1), generator=gen).float(),
-        f"{ACTION}_is_pad": torch.arange(steps)[None] >= torch.tensor(lengths)[:, None],
-        "task": [TASKS[i % 2] for i in range(batch)],
-    }
+def make_batch(lengths: list[int], steps: int = 6) -> dict:
+    return episode_windows(lengths, STATE_DIM, TASKS, steps)
 
 
 # ---- the ordered memory ------------------------------------------------------------------------------
@@ -196,24 +183,13 @@ def test_boundary_read_out():
 def ompn_checkpoint(craft_dataset, tmp_path_factory) -> Path:
     """A few steps of `lerobot-train --policy.type=ompn` on the session's Craft dataset."""
     out = tmp_path_factory.mktemp("ompn_train") / "train"
-    command = [
-        str(Path(sys.executable).parent / "lerobot-train"), "--policy.type=ompn", f"--dataset.repo_id={CRAFT_REPO_ID}",
-        f"--dataset.root={craft_dataset}", "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false",
-        "--env_eval_freq=0", f"--steps={STEPS}", "--batch_size=4", "--num_workers=0", "--policy.hidden_size=16",
-        "--policy.cell_hidden_size=16", "--policy.window_size=24", f"--output_dir={out}",
-    ]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}  # one thread: far faster than two on a shared machine
-    proc = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=out.parent, env=env)
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    return out / "checkpoints" / f"{STEPS:06d}" / "pretrained_model"
+    flags = ("--policy.hidden_size=16", "--policy.cell_hidden_size=16", "--policy.window_size=24")
+    return train_on_craft("ompn", craft_dataset, out, STEPS, *flags)
 
 
 def test_trained_checkpoint_reloads_and_yields_boundaries(ompn_checkpoint, craft_dataset):
-    policy, preprocessor, _ = load_policy(ompn_checkpoint)
-    assert isinstance(policy, OMPNPolicy) and policy.config.hidden_size == 16 and len(policy.config.tasks) == 2
-    again = OMPNPolicy.from_pretrained(ompn_checkpoint)
-    for key, value in policy.state_dict().items():
-        torch.testing.assert_close(value, again.state_dict()[key], rtol=0, atol=0, msg=key)
+    policy, preprocessor = reload_checkpoint(ompn_checkpoint, OMPNPolicy)
+    assert policy.config.hidden_size == 16 and len(policy.config.tasks) == 2
     episodes = load_episodes(craft_dataset, split_episodes(craft_dataset, "val"))
     parses = segment_episodes(policy, preprocessor, episodes)
     assert len(parses) == len(episodes.tasks)
@@ -228,10 +204,7 @@ def test_trained_checkpoint_reloads_and_yields_boundaries(ompn_checkpoint, craft
 
 def test_ompn_acts_in_lerobot_evals_craft_rollout(ompn_checkpoint):
     policy = OMPNPolicy.from_pretrained(ompn_checkpoint)
-    vec = make_env(make_env_config("craft", task="AC"), n_envs=2)["craft"][0]
-    out = rollout(vec, policy, lambda x: x, lambda x: x, lambda x: x, lambda x: x, seeds=[0, 1])
-    vec.close()
-    assert out["action"].shape[0] == 2 and out["done"].any(1).all()  # both episodes ran to their end
+    craft_rollout(policy)
     assert policy.last_expansion.shape == (2, policy.config.n_slots)
 
 

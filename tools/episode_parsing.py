@@ -62,8 +62,8 @@ class Segmenter(Protocol):
 
 @dataclass(frozen=True)
 class Parser:
-    """A model type's entry: its `segment` function and, for a model without per-step labels,
-    `no_labels`: why it has none (reported in place of NMI)."""
+    """A model type's entry: its `segment` function and, for a model whose parses may come without
+    per-step labels, `no_labels`: why they have none (reported in place of NMI when they do)."""
 
     segment: Segmenter
     no_labels: str | None = None
@@ -152,6 +152,22 @@ def _ompn_segmentations(
     ]
 
 
+def _compile_segmentations(
+    policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int
+) -> list[Segmentation]:
+    """compILE: the hard parse (argmax boundaries, as in its evaluation); a segment ends at the step
+    before the argmax position of its boundary distribution (the next segment's first step), the
+    last at the episode's last step, and positions that start no new segment (one at or before an
+    earlier boundary) add none. Labels: each step's segment's concrete latent category (argmax);
+    Gaussian latents give none."""
+    concrete = policy.config.latent_type == "concrete"
+    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("segment", "label"))
+    return [
+        Segmentation(boundaries_from_labels(episode["segment"]), episode["label"] if concrete else None)
+        for episode in parsed
+    ]
+
+
 PARSERS: dict[str, Parser] = {
     "ocn": Parser(_ocn_segmentations),
     "ompn": Parser(
@@ -161,6 +177,13 @@ PARSERS: dict[str, Parser] = {
             "its boundaries are read out. A segment index derived from them would restate the boundaries "
             "(already scored by F1 and alignment), and, numbering segments within an episode, would not "
             "be an identity that recurs across tasks, which is what NMI measures for OCN's options."
+        ),
+    ),
+    "compile": Parser(
+        _compile_segmentations,
+        no_labels=(
+            "compILE with Gaussian latents has no discrete latent to label steps with (NMI needs "
+            "categories); train it with --policy.latent_type=concrete for per-step labels."
         ),
     ),
 }

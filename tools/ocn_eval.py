@@ -6,8 +6,9 @@ and task alignment from the predicted boundaries, NMI from per-step labels (OCN:
 argmax p^c). In the Craft env it measures the whole policy's free-run success per task and, for
 a policy made of options, each frozen option alone on each subtask (paper table 1), drawn as a PNG
 beside the JSON. Every model type parses through `tools.episode_parsing` (OMPN: the top-k steps of
-its expected expansion); what does not apply to a model (OMPN has no labels and no options) is
-null in the JSON, with the reason under "not_applicable".
+its expected expansion; compILE: its argmax segment boundaries, labelled by its concrete latents);
+what does not apply to a model (OMPN has no labels, OMPN and compILE no options) is null in the
+JSON, with the reason under "not_applicable".
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
         prog="ocn-eval", description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     parser.add_argument("--policy", type=Path, required=True,
-                        help="a pretrained_model folder of an ocn or ompn checkpoint")
+                        help="a pretrained_model folder of an ocn, ompn or compile checkpoint")
     parser.add_argument("--root", type=Path, required=True, help="the LeRobot dataset's folder")
     parser.add_argument("--repo-id", required=True, help="the dataset's repo id, recorded in the output")
     parser.add_argument("--split", default="val", help="split of meta/info.json to parse: train, val or all")
@@ -120,7 +121,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         not_applicable["option_subtask_success"] = (
             f"`{policy.name}` has no options that act alone; the table runs each frozen option on each subtask"
         )
-    if parser.no_labels:
+    if scores["nmi"] is None and parser.no_labels:
         not_applicable["nmi"] = parser.no_labels
     log = None
     if args.mcap is not None:
