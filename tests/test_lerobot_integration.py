@@ -6,6 +6,7 @@ subprocesses, the env config and the rollout plumbing in process.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -122,11 +123,38 @@ def test_train_checkpoint_reloads_identically(trained):
 def test_moe_trains_through_lerobot_train_and_reloads_as_moe(demos, tmp_path):
     checkpoint = train(demos, tmp_path, "--policy.hierarchy=moe")
     policy = OCNPolicy.from_pretrained(checkpoint)
-    assert policy.config.hierarchy == "moe" and policy.core.always_end and policy.config.tasks == [AC]
+    assert policy.config.hierarchy == "moe" and policy.core.skill_length == 1 and policy.config.tasks == [AC]
     batch = episode_batch(demos, 0)
     assert torch.equal(policy.parse(batch)["end"], torch.ones(1, batch[OBS_STATE].shape[1]))
     loss, stats = policy.forward(batch)
     assert torch.isfinite(loss) and stats["mean_end"] == 1.0
+
+
+def test_ocn_eval_scores_a_hil_checkpoint(trained, tmp_path):
+    """A HIL checkpoint is an OCN checkpoint with `hierarchy="hil"` (same layout): the trained OCN's
+    weights under HIL's schedule, saved with its processors, parse and roll out through ocn-eval."""
+    from tools.episode_parsing import load_ocn
+    from tools.ocn_eval import main as ocn_eval
+    from tools.ocn_finetune import save_checkpoint
+
+    root, checkpoint = trained
+    source, preprocessor, postprocessor = load_ocn(checkpoint)
+    hil = OCNPolicy(dataclasses.replace(source.config, hierarchy="hil", skill_length=3, pretrained_path=None))
+    hil.load_state_dict(source.state_dict())
+    save_checkpoint(hil, preprocessor, postprocessor, tmp_path / "hil")
+    policy = OCNPolicy.from_pretrained(tmp_path / "hil")
+    assert policy.config.hierarchy == "hil" and policy.core.skill_length == 3
+    batch = episode_batch(root, 0)
+    parsed = policy.parse(batch)
+    scheduled = torch.arange(batch[OBS_STATE].shape[1]) % 3 == 0
+    assert torch.equal(parsed["end"][0], scheduled.float())
+    switched = torch.cat([torch.tensor([True]), parsed["option"][0, 1:] != parsed["option"][0, :-1]])
+    assert not (switched & ~scheduled).any()  # p^c, so the option, only changes where a skill starts
+    out = tmp_path / "eval.json"
+    assert ocn_eval(["--policy", str(tmp_path / "hil"), "--root", str(root), "--repo-id", REPO_ID, "--out", str(out),
+                     "--rollouts", "2"]) == 0
+    result = json.loads(out.read_text())
+    assert 0.0 <= result["f1_tol0"] <= result["f1_tol1"] <= 1.0 and list(result["success_rate"]) == [AC]
 
 
 def test_lerobot_eval_counts_the_episode(trained):

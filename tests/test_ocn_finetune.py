@@ -223,7 +223,7 @@ def test_finetuning_is_seeded(ocn_checkpoint, tmp_path):
         assert torch.equal(a, b), name
 
 
-# ---- baselines: MoE checkpoints and flat PPO -------------------------------------------------------
+# ---- baselines: MoE and HIL checkpoints, flat PPO--------------------------------------------------
 
 
 def test_finetuning_an_moe_checkpoint_queries_the_controller_at_every_step(ocn_checkpoint, tmp_path):
@@ -246,6 +246,35 @@ def test_moe_and_ocn_options_are_not_pooled(ocn_checkpoint):
     first, _, _ = load_ocn(ocn_checkpoint)
     with pytest.raises(ValueError, match="hierarchy is 'ocn' vs 'moe'"):
         merge_option_pools([first, variant(ocn_checkpoint, seed=1, hierarchy="moe")], [ADC])
+
+
+def test_finetuning_a_hil_checkpoint_queries_the_controller_every_skill_length_steps(ocn_checkpoint, tmp_path):
+    hil = save_variant(ocn_checkpoint, tmp_path / "hil" / "pretrained_model", seed=5, hierarchy="hil", skill_length=3)
+    out = tmp_path / "run"
+    argv = ["--checkpoint", str(hil), "--tasks", "ADC,CAD", "--frames", "400", "--envs", "4", "--max-steps", "20",
+            "--seed", "2", "--batch-size", "32", "--out", str(out)]
+    assert main(argv) == 0
+    rows = list(csv.DictReader(open(out / "curve.csv")))
+    frames = [0] + [int(row["frames"]) for row in rows]
+    for row, before, after in zip(rows, frames, frames[1:]):
+        decisions, episodes = round(float(row["decisions_per_episode"]) * int(row["episodes"])), int(row["episodes"])
+        assert (after - before) / 3 <= decisions < (after - before) / 3 + episodes  # ceil(frames / 3) each
+    policy, _, _ = load_ocn(out / "pretrained_model")
+    source, _, _ = load_ocn(hil)
+    assert policy.config.hierarchy == "hil" and policy.config.skill_length == 3 and policy.config.n_options == 3
+    for name, param in policy.core.options.named_parameters():
+        assert torch.equal(param, source.core.options.get_parameter(name)), name
+    assert torch.equal(policy.core.option_init, source.core.option_init)
+    decided = hard_rollout(out / "pretrained_model", ["ADC", "CAD"], max_steps=10)
+    assert [rows.tolist() for rows in decided] == [[t % 3 == 0] * 2 for t in range(10)]
+
+
+def test_hil_options_of_other_skill_lengths_are_not_pooled(ocn_checkpoint):
+    first = variant(ocn_checkpoint, seed=1, hierarchy="hil")
+    with pytest.raises(ValueError, match="fixed_skill_length is 4 vs 3"):
+        merge_option_pools([first, variant(ocn_checkpoint, seed=2, hierarchy="hil", skill_length=3)], [ADC])
+    pool = merge_option_pools([first, variant(ocn_checkpoint, seed=2, hierarchy="hil")], [ADC])
+    assert pool.config.hierarchy == "hil" and pool.core.skill_length == 4
 
 
 def test_flat_ppo_writes_the_same_curve_and_a_checkpoint_of_primitive_actions(tmp_path):

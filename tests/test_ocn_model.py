@@ -126,7 +126,8 @@ def _previous_state(batch: int = 2) -> OCNState:
     gen = torch.Generator().manual_seed(3)
     p_c = torch.softmax(torch.randn(batch, N_OPTIONS, generator=gen), -1)
     controller_h = torch.randn(batch, 8, generator=gen).tanh()
-    return OCNState(controller_h, p_c, torch.randn(N_OPTIONS, batch, 8, generator=gen))
+    option_h = torch.randn(N_OPTIONS, batch, 8, generator=gen)
+    return OCNState(controller_h, p_c, option_h, torch.ones(batch, dtype=torch.long))
 
 
 def test_not_done_keeps_controller_and_continues_options():
@@ -512,7 +513,104 @@ def test_moe_loss_is_the_nll_of_a_fresh_controller_mixture_of_restarted_options_
 
 def test_moe_switch_is_saved_and_checked(tmp_path):
     make_policy(hierarchy="moe").save_pretrained(tmp_path)
-    assert OCNPolicy.from_pretrained(tmp_path).core.always_end
+    assert OCNPolicy.from_pretrained(tmp_path).core.skill_length == 1
     assert OCNConfig(device="cpu").hierarchy == "ocn"
     with pytest.raises(ValueError, match="hierarchy"):
         OCNConfig(device="cpu", hierarchy="flat")
+
+
+# ---- HIL baseline (hierarchy="hil": skills of a fixed length) ---------------------------------------
+
+
+def hil_schedule(steps: int, length: int) -> torch.Tensor:
+    """e_t [steps] of HIL: 1 at t = 1, 1 + L, 1 + 2L, ... (0-based 0, L, 2L, ...), 0 elsewhere."""
+    return (torch.arange(steps) % length == 0).float()
+
+
+@pytest.mark.parametrize("logit", [-1e4, 1e4])
+def test_hil_termination_is_the_schedule_in_training_parsing_and_inference(logit):
+    """Whatever the options' termination heads say (never or always), e_t is 1 exactly every L steps."""
+    policy = make_policy(hierarchy="hil", skill_length=2, window_size=7)
+    force_termination(policy, logit)
+    batch = make_batch(steps=7)
+    schedule = hil_schedule(7, 2)
+    _, stats = policy(batch)
+    assert stats["mean_end"] == pytest.approx(schedule[1:].mean().item())  # over t > 1
+    assert torch.equal(policy.parse(batch)["end"], schedule.expand(4, -1))
+    for execution in ("soft", "hard"):
+        policy.config.execution = execution
+        policy.reset()
+        for t in range(7):
+            policy.select_action({OBS_STATE: batch[OBS_STATE][:, t], "task": batch["task"]})
+            assert torch.equal(policy.last_step.end, schedule[t].expand(4)), (execution, t)
+            if execution == "hard":
+                assert torch.equal(policy.last_step.decided, schedule[t].bool().expand(4))
+
+
+def test_hil_controller_state_changes_only_at_the_scheduled_steps():
+    """At t = 1 + kL the controller steps and the options restart (eq. 17's "done" branch); in between
+    h^c and p^c are kept exactly and the options continue from their own states."""
+    policy = make_policy(hierarchy="hil", skill_length=3, window_size=8)
+    batch = make_batch(batch=2, steps=8)
+    core = policy.core
+    state = core.initial_state(policy.task_index(batch["task"], 2))
+    start = torch.ones(2, dtype=torch.bool)
+    for t in range(8):
+        x = batch[OBS_STATE][:, t]
+        previous, (state, out) = state, core.step(state, core.project(x), start)
+        start = torch.zeros(2, dtype=torch.bool)
+        if t % 3 == 0:
+            ctrl = core.controller(x, previous.controller_h.unsqueeze(0))
+            torch.testing.assert_close(state.controller_h, ctrl.hidden[0])
+            restarted = core.options(x, core.option_init.unsqueeze(1).expand(-1, 2, -1))
+            torch.testing.assert_close(state.option_h, restarted.hidden)
+        else:
+            assert torch.equal(state.controller_h, previous.controller_h)
+            assert torch.equal(state.p_c, previous.p_c)
+            torch.testing.assert_close(state.option_h, core.options(x, previous.option_h).hidden)
+        assert torch.equal(state.steps, torch.full((2,), t + 1))
+
+
+def test_hil_rows_keep_their_own_schedule_from_their_own_start():
+    """Rows of one batch that start episodes at different steps (vector envs resetting one env) count
+    their skills from their own start."""
+    policy = make_policy(hierarchy="hil", skill_length=3)
+    core = policy.core
+    x = torch.randn(9, 2, STATE_DIM)
+    start = torch.zeros(9, 2, dtype=torch.bool)
+    start[0] = True
+    start[4, 1] = True
+    state, out = core.unroll(x, core.initial_state(torch.tensor([0, 1])), start)
+    assert torch.equal(out.end[:, 0], hil_schedule(9, 3))
+    assert torch.equal(out.end[:, 1], torch.cat([hil_schedule(4, 3), hil_schedule(5, 3)]))
+    assert torch.equal(state.steps, torch.tensor([9, 5]))
+
+
+def test_hil_gradients_reach_controller_and_options_but_not_termination():
+    policy = make_policy(hierarchy="hil", skill_length=2, temperature=1.0)
+    loss, _ = policy(make_batch(batch=6, steps=5))
+    loss.backward()
+    core = policy.core
+    for name, param in core.controller.named_parameters():
+        assert param.grad is not None and param.grad.abs().sum() > 0, name
+    assert (core.options.w_h.grad.flatten(1).abs().sum(1) > 0).all()
+    assert (core.options.w_out.grad[..., :-1].flatten(1).abs().sum(1) > 0).all()
+    assert not core.options.w_out.grad[..., -1].any() and not core.options.b_out.grad[..., -1].any()
+    assert (core.controller_init.grad.abs().sum(1) > 0).all()
+    assert (core.option_init.grad.abs().sum(1) > 0).all()
+
+
+def test_hil_of_skill_length_one_is_moe():
+    batch = make_batch()
+    hil, moe = make_policy(hierarchy="hil", skill_length=1), make_policy(hierarchy="moe")
+    assert torch.equal(hil(batch)[0], moe(batch)[0])
+    assert not torch.equal(make_policy(hierarchy="hil")(batch)[0], moe(batch)[0])
+
+
+def test_hil_switch_and_skill_length_are_saved_and_checked(tmp_path):
+    make_policy(hierarchy="hil", skill_length=5).save_pretrained(tmp_path)
+    loaded = OCNPolicy.from_pretrained(tmp_path)
+    assert loaded.config.hierarchy == "hil" and loaded.core.skill_length == 5
+    assert OCNConfig(device="cpu").skill_length == 4 and make_policy().core.skill_length is None
+    with pytest.raises(ValueError, match="skill_length must be >= 1, got 0"):
+        OCNConfig(device="cpu", hierarchy="hil", skill_length=0)

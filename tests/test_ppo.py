@@ -299,6 +299,28 @@ def test_semi_mdp_gae_of_one_step_options_is_plain_gae():
     torch.testing.assert_close(returns, advantage + value)
 
 
+def test_hil_rollouts_run_every_option_for_exactly_skill_length_steps():
+    """Under HIL (L = 3) the controller chooses at t = 1, 4, 7, ...: an option that would never end
+    under OCN (down, blocked by the wood, so the agent keeps facing it) runs 3 steps, and one that
+    would end after every step (use) runs on too, unless the episode ends first."""
+    policy = craft_policy(n_options=2, hierarchy="hil", skill_length=3)
+    set_option(policy, 0, DOWN, end_logit=-50.0)
+    set_option(policy, 1, USE, end_logit=50.0)
+    batch = collect(policy, WoodAhead(32, reward="dense", max_steps=10), [TASK] * 32, range(32), gamma=0.5)
+    last = batch.count - 1
+    assert np.array_equal(batch.count, -(-batch.frames // 3))
+    for e in range(32):
+        assert (batch.duration[e, : last[e]] == 3).all() and batch.duration[e, last[e]] == batch.frames[e] - 3 * last[e]
+    assert (batch.duration[~batch.mask] == 0).all()
+    chose_use = (batch.option == 1) & batch.mask
+    assert np.array_equal(batch.success, chose_use.any(1)) and batch.success.any() and (batch.count > 1).any()
+    won = batch.success
+    # use ends the episode at its first step, k = 0 within its option: reward 1, undiscounted
+    assert np.array_equal(batch.frames[won], 3 * chose_use.argmax(1)[won] + 1)
+    np.testing.assert_allclose(batch.reward[won, last[won]], 1.0)
+    np.testing.assert_allclose(batch.reward.sum(1), batch.return_)
+
+
 def test_primitive_action_pool_option_a_always_emits_action_a():
     policy = primitive_action_pool([TASK], hidden_size=16)
     obs = torch.from_numpy(CraftBatch(8).reset(seeds=range(8), tasks=[TASK] * 8)).float()

@@ -5,7 +5,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tools.reproduce.finetune import METHODS, SETTINGS, finetune_command
+import pytest
+
+from tools.reproduce.finetune import METHODS, SETTINGS, finetune_command, must_show
 from tools.reproduce.runs import TrainedRun
 
 TINY = ["--seeds", "1", "--steps", "2", "--batch-size", "8", "--num-workers", "0", "--episodes-per-task", "12",
@@ -19,7 +21,9 @@ def _reproduce(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
 
 
 def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
-    done = _reproduce(tmp_path, "--rewards", "sparse")
+    # HIL's runs go through the same code as MoE's (only the clone's overrides differ), so the tiny end
+    # to end run leaves it out for time; test_hil_is_cloned_as_hil_and_checked_against_ocn covers it.
+    done = _reproduce(tmp_path, "--rewards", "sparse", "--methods", "ocn,moe,flat")
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())
     assert result["runs_finished"] == result["runs_planned"] == 3
@@ -40,7 +44,7 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
     # S1's OCN clone is the imitation study's main-variant run, shared by both reproductions.
     assert (tmp_path / "work" / "imitation_s1" / "3options_T10" / "seed1" / "train").is_dir()
 
-    again = _reproduce(tmp_path, "--rewards", "sparse")
+    again = _reproduce(tmp_path, "--rewards", "sparse", "--methods", "ocn,moe,flat")
     assert again.returncode == 0 and "finetuning" not in again.stdout and "training" not in again.stdout
 
     changed = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--frames", "3000")
@@ -60,3 +64,26 @@ def test_s2_pools_the_options_of_both_cloned_models(tmp_path):
     command = finetune_command(args, SETTINGS["s2"], METHODS[0], "sparse", 1, clones, tmp_path / "out")
     assert [command[i + 1] for i, word in enumerate(command) if word == "--checkpoint"] == [str(c.checkpoint) for c in clones]
     assert command[command.index("--tasks") + 1] == "BADC,ACBD,CABD"
+
+
+def test_hil_is_cloned_as_hil_and_checked_against_ocn(tmp_path):
+    import argparse
+
+    hil = {method.key: method for method in METHODS}["hil"]
+    assert hil.name == "HIL" and hil.overrides == {"hierarchy": "hil"}
+    args = argparse.Namespace(frames=100, envs=4)
+    clone = TrainedRun(tmp_path / "hil" / "pretrained_model", "", None)
+    command = finetune_command(args, SETTINGS["s1"], hil, "sparse", 1, [clone], tmp_path / "out")
+    assert "--flat" not in command and command[command.index("--checkpoint") + 1] == str(clone.checkpoint)
+
+    def row(success: float, mean_return: float) -> dict:
+        values = {"success": success, "mean_return": mean_return,
+                  **{f"success[{task}]": success for task in SETTINGS["s1"].tasks.split(",")}}
+        return {"at_budget": {key: {"mean": value} for key, value in values.items()}}
+
+    summary = {f"{name} | {reward}": row(success, 2 * success) for reward in ("sparse", "dense")
+               for name, success in (("OCN", 0.95), ("HIL", 0.97), ("MoE", 0.1))}
+    checks = {check["check"].split(" (")[0]: check for check in must_show(SETTINGS["s1"], summary)}
+    assert not checks["sparse: HIL's mean success below OCN's"]["holds"]
+    assert checks["sparse: MoE's mean success below OCN's"]["holds"]
+    assert checks["dense: OCN's return at least twice the best baseline's"]["value"] == pytest.approx(0.95 / 0.97)

@@ -5,7 +5,8 @@ checkpoints are pooled (S1: one checkpoint's options; S2: two checkpoints' optio
 a new controller with one initial state per new task is put over the pool, and PPO trains it in
 option space (see `tools.ppo`) while every option stays frozen. The result is an ordinary `ocn`
 checkpoint with `execution="hard"`, so `load_ocn` and `lerobot-eval --policy.path=DIR/pretrained_model`
-run the finetuned hierarchy unchanged.
+run the finetuned hierarchy unchanged. A checkpoint of the MoE or HIL baseline (`hierarchy="moe"` or
+`"hil"`) keeps its hierarchy, so its options keep running for their fixed number of steps.
 
 `--flat` (instead of --checkpoint) trains the flat PPO baseline from scratch, with no demos: a
 policy on primitive actions, built as the same network whose N = 5 options are the five primitive
@@ -39,9 +40,10 @@ from policies.ocn import OCNConfig, OCNPolicy
 
 # Config fields that must agree for options of different checkpoints to share one encoder, one
 # action head and one stacked cell.
-# `hierarchy` too: an MoE's options were trained as one-step experts and never learned to terminate.
+# `hierarchy` and the skill length it fixes too: MoE's and HIL's options were trained to run a fixed
+# number of steps (1 or `skill_length`) and never learned to terminate; the pool keeps that schedule.
 POOL_FIELDS = ("obs_encoder", "action_type", "n_actions", "hidden_size", "mlp_hidden_size", "mlp_depth",
-               "log_std_min", "log_std_max", "hierarchy")
+               "log_std_min", "log_std_max", "hierarchy", "fixed_skill_length")
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:

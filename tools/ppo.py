@@ -17,7 +17,9 @@ the pre-update weights, so the PPO ratio is exactly 1 before the first gradient 
 
 Under `hierarchy="moe"` (the MoE baseline, and the flat baseline built on it in `ocn-finetune
 --flat`) the controller decides at every step, so every option lasts one step: one transition per
-env step with R = r_t and discount gamma, and semi-MDP GAE is ordinary GAE.
+env step with R = r_t and discount gamma, and semi-MDP GAE is ordinary GAE. Under `hierarchy="hil"`
+(the HIL baseline) it decides every `skill_length` L steps, so every option lasts L steps (the last
+of an episode may be cut short by its end), and semi-MDP GAE discounts by gamma^L.
 
 The critic is a small MLP on h^c (`ValueHead`), trained with the controller (shared h^c, value
 loss weighted by `value_coef`). It only serves training and is not part of the saved policy.

@@ -8,7 +8,7 @@ from lerobot.configs import PreTrainedConfig
 from policies.sequence import SequenceConfig, check_choice
 
 EXECUTIONS = ("soft", "hard")
-HIERARCHIES = ("ocn", "moe")
+HIERARCHIES = ("ocn", "moe", "hil")
 
 
 @PreTrainedConfig.register_subclass("ocn")
@@ -28,6 +28,16 @@ class OCNConfig(SequenceConfig):
       current observation) and in both executions: under "hard" the controller samples an option
       at every step, so in PPO finetuning every option lasts exactly one step. The options keep
       their (then untrained and unused) termination heads so that the checkpoint layout is OCN's.
+    - "hil": the HIL baseline (the paper's section 4 after Le et al. 2018): a high level over
+      low-level skills of fixed length `skill_length` (L). e_t is fixed at 1 at steps t = 1, 1 + L,
+      1 + 2L, ... of the episode (counted from its first frame, or from the window's first frame
+      under `window_start="any"`) and at 0 at every other step, in training, in parsing and in both
+      executions: under "hard" the controller samples an option every L steps, so in PPO
+      finetuning every option lasts exactly L steps (the episode's end may cut the last one short).
+      At the steps in between eq. 17 takes its "not done" branch, so, as under "moe", the options'
+      termination heads are kept but unused. Le et al. train their low level on expert subgoal
+      labels; this baseline, as the OCN paper describes it, learns its fixed-length skills from
+      the demonstrations alone, without labels. "moe" is the same schedule with L = 1.
     """
 
     model_name: ClassVar[str] = "OCN"
@@ -45,6 +55,11 @@ class OCNConfig(SequenceConfig):
     # `forward` and `parse` are the soft recurrence in both cases.
     execution: str = "soft"
     hierarchy: str = "ocn"
+    # Steps per skill under hierarchy="hil" (ignored otherwise). 4 by default: Craft's subtasks take
+    # about 5-15 steps and its demonstrations 13-33, so L = 4 is below the shortest subtask (each one
+    # holds at least one whole skill), puts a skill boundary within 2 steps of every true subtask end,
+    # and gives 4-9 controller decisions per demonstration; a length near a whole subtask would not.
+    skill_length: int = 4
 
     # The controller's learning rate is optimizer_lr * controller_lr_scale. The paper slows the
     # controller by dividing its logits by T, which also shrinks its gradients; Adam normalises
@@ -57,7 +72,15 @@ class OCNConfig(SequenceConfig):
         if self.n_options < 1 or self.mlp_depth < 1:
             raise ValueError(f"n_options and mlp_depth must be >= 1, got {self.n_options} and {self.mlp_depth}.")
         check_choice("hierarchy", self.hierarchy, HIERARCHIES)
+        if self.skill_length < 1:
+            raise ValueError(f"skill_length must be >= 1, got {self.skill_length}.")
         if self.controller_lr_scale <= 0:
             raise ValueError(f"controller_lr_scale must be > 0, got {self.controller_lr_scale}.")
         if self.temperature <= 0:
             raise ValueError(f"temperature must be > 0, got {self.temperature}.")
+
+    @property
+    def fixed_skill_length(self) -> int | None:
+        """Steps every option runs for when the hierarchy fixes them (1 under "moe", `skill_length`
+        under "hil"); None under "ocn", whose options end where their learned termination fires."""
+        return {"ocn": None, "moe": 1, "hil": self.skill_length}[self.hierarchy]

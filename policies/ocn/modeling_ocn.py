@@ -55,7 +55,7 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             mlp_depth=config.mlp_depth,
             n_params=self.head.n_params,
             temperature=config.temperature,
-            always_end=config.hierarchy == "moe",
+            skill_length=config.fixed_skill_length,
         )
         self.reset()
 

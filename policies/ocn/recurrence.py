@@ -4,8 +4,10 @@ Every step computes both branches of eq. 17: "not done" (options continue from t
 the controller keeps its state and p^c_{t-1}) and "done" (the controller steps, the options restart
 from their learned initial states), and mixes them with e_t = sum_i p^c_{t-1,i} e_{i,t} (eq. 12).
 Step t = 1 (eq. 8-10) is the "done" branch alone, which is what a step with e_t forced to 1 gives,
-so episode starts are a per-row `start` flag rather than a separate code path. The MoE baseline
-(`always_end`) is the same recurrence with that flag raised at every step.
+so episode starts are a per-row `start` flag rather than a separate code path. The baselines with
+options of a fixed length L (`skill_length`: 1 for MoE, L for HIL) are the same recurrence with e_t
+set by a schedule instead: 1 at steps t = 1, 1 + L, 1 + 2L, ... of each row's episode, counted by a
+per-row step counter in the recurrent state, and 0 at every other step.
 
 `hard_step` is the sampled counterpart used by the RL phase (appendix A.1) and by hard execution:
 one option runs at a time, and the controller only steps where that option's sampled termination
@@ -23,11 +25,13 @@ from .cell import StackedCell
 
 @dataclass
 class OCNState:
-    """Recurrent state after a step: h^c [B, d_hid], p^c [B, N], option states h^o [N, B, d_hid]."""
+    """Recurrent state after a step: h^c [B, d_hid], p^c [B, N], option states h^o [N, B, d_hid],
+    and `steps` [B] (long), the steps taken since the row's episode started, for fixed skill lengths."""
 
     controller_h: Tensor
     p_c: Tensor
     option_h: Tensor
+    steps: Tensor
 
 
 class StepOutput(NamedTuple):
@@ -46,12 +50,14 @@ class StepOutput(NamedTuple):
 @dataclass
 class HardState:
     """Sampled hierarchy after a step: h^c [B, d_hid] (it advances only at decisions), p^c [B, N] of
-    the latest decision, the running option [B] (long) and the option states h^o [N, B, d_hid]."""
+    the latest decision, the running option [B] (long), the option states h^o [N, B, d_hid] and the
+    steps [B] (long) taken since the row's episode started (`OCNState.steps`)."""
 
     controller_h: Tensor
     p_c: Tensor
     option: Tensor
     option_h: Tensor
+    steps: Tensor
 
 
 class HardStepOutput(NamedTuple):
@@ -79,7 +85,8 @@ def _mix(end: Tensor, done: Tensor, not_done: Tensor) -> Tensor:
 class OCNCore(nn.Module):
     """Shared controller (N = 1 cell over options), N option cells, and the learned initial states.
 
-    `always_end` forces e_t = 1 at every step (the MoE baseline): every step is then a start.
+    `skill_length` L fixes how long every option runs (see `schedule`): 1 for the MoE baseline, where
+    every step is then a start, L for HIL; None (OCN) leaves termination to the options.
     """
 
     def __init__(
@@ -92,12 +99,14 @@ class OCNCore(nn.Module):
         mlp_depth: int,
         n_params: int,
         temperature: float,
-        always_end: bool = False,
+        skill_length: int | None = None,
     ) -> None:
         super().__init__()
+        if skill_length is not None and skill_length < 1:
+            raise ValueError(f"skill_length must be >= 1 or None, got {skill_length}.")
         self.n_options = n_options
         self.temperature = temperature
-        self.always_end = always_end
+        self.skill_length = skill_length
         self.controller = StackedCell(
             1, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_options, with_end=False
         )
@@ -108,21 +117,35 @@ class OCNCore(nn.Module):
         self.option_init = nn.Parameter(torch.zeros(n_options, hidden_size))
 
     def initial_state(self, task_index: Tensor) -> OCNState:
-        """State before t = 1: h^c_{tau,0} per row's task; p^c and h^o are unused there (e_1 = 1)."""
+        """State before t = 1: h^c_{tau,0} per row's task, no steps taken; p^c and h^o are unused
+        there (e_1 = 1)."""
         batch = task_index.shape[0]
         uniform = torch.full((batch, self.n_options), 1.0 / self.n_options, device=task_index.device)
         option_h = self.option_init.unsqueeze(1).expand(-1, batch, -1)
-        return OCNState(self.controller_init[task_index], uniform, option_h)
+        steps = torch.zeros(batch, dtype=torch.long, device=task_index.device)
+        return OCNState(self.controller_init[task_index], uniform, option_h, steps)
 
     def initial_hard_state(self, task_index: Tensor) -> HardState:
         """Hard state before t = 1: h^c_{tau,0} per row's task; the option fields are unused (e_1 = 1)."""
         soft = self.initial_state(task_index)
         option = torch.zeros(task_index.shape[0], dtype=torch.long, device=task_index.device)
-        return HardState(soft.controller_h, soft.p_c, option, soft.option_h)
+        return HardState(soft.controller_h, soft.p_c, option, soft.option_h, soft.steps)
 
-    def forced_end(self, start: Tensor) -> Tensor:
-        """Rows [B] whose e_t is 1 this step whatever the options say: episode starts, or all under MoE."""
-        return torch.ones_like(start) if self.always_end else start
+    def schedule(self, start: Tensor, steps: Tensor) -> tuple[Tensor, Tensor]:
+        """Rows [B] whose e_t is 1 this step whatever the options say, and each row's step count after it.
+
+        `start` [B] marks episode starts (t = 1), which reset the count `steps` [B] of steps taken; a
+        row's own count makes rows that start at different times keep their own schedules. Under a
+        fixed skill length L, steps t = 1 + kL are forced too.
+        """
+        steps = torch.where(start, 0, steps)
+        forced = start if self.skill_length is None else start | (steps % self.skill_length == 0)
+        return forced, steps + 1
+
+    def termination(self, forced: Tensor, learned: Tensor) -> Tensor:
+        """e_t [B]: 1 where `forced`; elsewhere the options' `learned` e_t [B], or 0 under a fixed skill
+        length (the option runs on, so its termination head is unused)."""
+        return torch.where(forced, 1.0, learned if self.skill_length is None else torch.zeros_like(learned))
 
     def decide(self, x_controller: Tensor, controller_h: Tensor) -> tuple[Tensor, Tensor]:
         """One controller step from projected observations [1, B, d_mlp] and h^c [B, d_hid]:
@@ -133,18 +156,19 @@ class OCNCore(nn.Module):
     def hard_step(
         self, state: HardState, x: Projected, start: Tensor, greedy: bool
     ) -> tuple[HardState, HardStepOutput]:
-        """One step of the sampled hierarchy; `start` [B] marks t = 1 (the controller always chooses).
+        """One step of the sampled hierarchy; `start` [B] marks t = 1 (the controller always chooses,
+        as it does wherever `schedule` forces e_t = 1).
 
         Sampling draws e ~ Bernoulli(e_{i,t}) and i ~ p^c; `greedy` fires at e_{i,t} > 0.5 and takes
         argmax p^c instead. Every row's branches are computed and selected with `torch.where`, so a
         step costs the same whichever rows decide.
         """
         rows = torch.arange(start.shape[0], device=start.device)
-        start = self.forced_end(start)
+        forced, steps = self.schedule(start, state.steps)
         continued = self.options.step(x.options, state.option_h)
-        end = torch.where(start, 1.0, continued.end[state.option, rows])
+        end = self.termination(forced, continued.end[state.option, rows])
         fired = end > 0.5 if greedy else torch.bernoulli(end).bool()
-        decided = start | fired
+        decided = forced | fired
         logits, controller_h = self.decide(x.controller, state.controller_h)
         p_c = torch.softmax(logits, dim=-1)
         choice = p_c.argmax(-1) if greedy else torch.multinomial(p_c, 1).squeeze(-1)
@@ -157,6 +181,7 @@ class OCNCore(nn.Module):
             p_c=torch.where(decided[:, None], p_c, state.p_c),
             option=option,
             option_h=torch.where(gate, restarted.hidden, continued.hidden),
+            steps=steps,
         )
         return next_state, HardStepOutput(option_params[option, rows], decided, end)
 
@@ -165,19 +190,21 @@ class OCNCore(nn.Module):
         return Projected(self.controller.project(x), self.options.project(x))
 
     def step(self, state: OCNState, x: Projected, start: Tensor) -> tuple[OCNState, StepOutput]:
-        """One step from projected observations x ([1, B, .], [N, B, .]); `start` [B] forces e_t = 1."""
-        start = self.forced_end(start)
+        """One step from projected observations x ([1, B, .], [N, B, .]); `start` [B] marks t = 1, where
+        e_t = 1 (as wherever `schedule` forces it)."""
+        forced, steps = self.schedule(start, state.steps)
         continued = self.options.step(x.options, state.option_h)
         restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
         ctrl = self.controller.step(x.controller, state.controller_h.unsqueeze(0))
         new_p_c = torch.softmax(ctrl.logits[0] / self.temperature, dim=-1)
         option_end = continued.end.transpose(0, 1)
-        end = torch.where(start, torch.ones_like(new_p_c[:, 0]), (state.p_c * option_end).sum(-1))
+        end = self.termination(forced, (state.p_c * option_end).sum(-1))
         gate = end.unsqueeze(-1)
         next_state = OCNState(
             controller_h=_mix(gate, ctrl.hidden[0], state.controller_h),
             p_c=_mix(gate, new_p_c, state.p_c),
             option_h=_mix(gate.unsqueeze(0), restarted.hidden, continued.hidden),
+            steps=steps,
         )
         weights = torch.cat([(1.0 - gate) * state.p_c, gate * new_p_c], dim=-1)
         params = torch.cat([continued.logits, restarted.logits], dim=0)

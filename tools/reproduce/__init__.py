@@ -1,8 +1,8 @@
 """`ocn-reproduce`: the paper's experiments end to end, from recording to the committed results.
 
 Each experiment is a subcommand in its own module: `imitation-s1` (skill induction and its
-ablations, `imitation.py`), `s1` and `s2` (finetuning over frozen skills against MoE and flat PPO,
-`finetune.py`). What they share (recording, resumable `lerobot-train` runs) is in
+ablations, `imitation.py`), `s1` and `s2` (finetuning over frozen skills against MoE, HIL and flat
+PPO, `finetune.py`). What they share (recording, resumable `lerobot-train` runs) is in
 `runs.py`.
 """
 

@@ -1,7 +1,7 @@
 """`ocn-reproduce s1` and `ocn-reproduce s2`: reusing skills with PPO (paper section 4.1, figures 4-5).
 
-S1: OCN and MoE are cloned from the S1 demonstrations ({AC, CD, DA}); their options are frozen and
-a fresh controller is trained by PPO on ADC, CAD and DCA. S2: one model is cloned from {AB, BA} and
+S1: OCN, MoE and HIL are cloned from the S1 demonstrations ({AC, CD, DA}); their options are frozen
+and a fresh controller is trained by PPO on ADC, CAD and DCA. S2: one model is cloned from {AB, BA} and
 one from {CD, DC}; their option pools are merged and the controller learns BADC, ACBD and CABD.
 Flat PPO learns each setting from scratch on the primitive actions, as the reference that shows
 why skills matter. Every method gets the same env-frame budget, each reward (sparse, dense) and
@@ -60,9 +60,11 @@ SETTINGS = {
 METHODS = (
     Method("ocn", "OCN", {}),
     Method("moe", "MoE", {"hierarchy": "moe"}),
+    Method("hil", "HIL", {"hierarchy": "hil"}),
     Method("flat", "flat PPO", None),
 )
 REWARDS = ("sparse", "dense")
+BASELINES = tuple(method.name for method in METHODS if method.key != "ocn")
 
 
 def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
@@ -170,14 +172,14 @@ def must_show(setting: Setting, summary: dict[str, dict[str, Any]]) -> list[dict
         bar = 0.9 if setting.name == "s1" else 0.8
         checks.append({"check": f"OCN, sparse: success >= {bar} on each of {', '.join(labels)}",
                        "value": min(ocn_sparse), "holds": min(ocn_sparse) >= bar})
-        for other in ("MoE", "flat PPO"):
+        for other in BASELINES:
             theirs = value(other, "sparse", "success")
             if theirs is not None:
                 ours = value("OCN", "sparse", "success")
                 checks.append({"check": f"sparse: {other}'s mean success below OCN's ({ours:.3f})",
                                "value": theirs, "holds": theirs < ours})
     ours = value("OCN", "dense", "mean_return")
-    baselines = [v for v in (value(m, "dense", "mean_return") for m in ("MoE", "flat PPO")) if v is not None]
+    baselines = [v for v in (value(m, "dense", "mean_return") for m in BASELINES) if v is not None]
     if ours is not None and baselines and setting.name == "s1":
         checks.append({"check": "dense: OCN's return at least twice the best baseline's",
                        "value": ours / max(max(baselines), 1e-9), "holds": ours >= 2 * max(baselines)})
