@@ -31,7 +31,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from envs.batching import env_rng, reset_ids
+from envs.batching import EpisodeBatch, env_rng, reset_ids
 from envs.craft.layout import sample_map
 from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING, INVENTORY, INVENTORY_FIRST_KIND, OBS_DIM
 from envs.craft.world import (
@@ -69,35 +69,18 @@ _NOOP = N_ACTIONS
 _TARGET_OR_NONE = np.append(SUBTASK_TARGET, -1)
 
 
-class CraftBatch:
+class CraftBatch(EpisodeBatch):
     """State and rules of ``num_envs`` Craft envs, each with its own task and Generator."""
 
     def __init__(self, num_envs: int, mode: str = "paper", reward: str = "dense", max_steps: int | None = None):
-        if num_envs < 1:
-            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        if reward not in REWARDS:
-            raise ValueError(f"unknown reward {reward!r}; valid rewards: {', '.join(REWARDS)}")
-        if max_steps is not None and max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+        super().__init__(num_envs, reward, REWARDS, max_steps)
         n = num_envs
-        self.num_envs = n
         self.mode = check_mode(mode)
-        self.reward = reward
-        self.max_steps_override = max_steps
         self.grid = np.zeros((n, GRID_SIZE, GRID_SIZE), dtype=np.int8)
         self.pos = np.ones((n, 2), dtype=np.int64)
         self.facing = np.zeros(n, dtype=np.int64)
         self.inventory = np.zeros((n, N_KINDS), dtype=np.int64)
-        self.tasks = np.full((n, 1), -1, dtype=np.int64)
-        self.task_len = np.zeros(n, dtype=np.int64)
-        self.progress = np.zeros(n, dtype=np.int64)
-        self.t = np.zeros(n, dtype=np.int64)
-        self.max_steps = np.zeros(n, dtype=np.int64)
-        # Envs start done: they must be reset (which also gives them a task) before stepping.
-        self.done = np.ones(n, dtype=bool)
-        self.rngs: list[np.random.Generator | None] = [None] * n
         self._target_kinds = np.full((n, 2), -1, dtype=np.int64)
-        self._arange = np.arange(n)
         self._ready = False
 
     def reset(
@@ -123,31 +106,16 @@ class CraftBatch:
             self.pos[i] = divmod(agent, GRID_SIZE)
             self.facing[i] = facing
         self.inventory[ids] = 0
-        self.progress[ids] = 0
-        self.t[ids] = 0
-        self.done[ids] = False
+        self._restart(ids)
         self._ready = bool((self.task_len > 0).all())
         return self.observe()
 
     def _set_tasks(self, ids: np.ndarray, tasks: Sequence[Sequence[int] | str]) -> None:
-        """Store tasks padded with -1, growing the task table when a longer task arrives."""
+        """Store tasks (strings or subtask-id tuples) in the task table."""
         parsed = [parse_task(t, self.mode) if isinstance(t, str) else check_task(t, self.mode) for t in tasks]
-        longest = max(len(p) for p in parsed)
-        if longest > self.tasks.shape[1]:
-            grown = np.full((self.num_envs, longest), -1, dtype=np.int64)
-            grown[:, : self.tasks.shape[1]] = self.tasks
-            self.tasks = grown
-        self.tasks[ids] = -1
-        for i, task in zip(ids.tolist(), parsed):
-            self.tasks[i, : len(task)] = task
-            self.task_len[i] = len(task)
-            self.max_steps[i] = self.max_steps_override or default_max_steps(len(task))
+        self._store_tasks(ids, parsed, default_max_steps)
         # One extra -1 column so progress == task_len indexes "no current target".
         self._target_kinds = _TARGET_OR_NONE[np.pad(self.tasks, ((0, 0), (0, 1)), constant_values=-1)]
-
-    def task_of(self, env_id: int) -> tuple[int, ...]:
-        """Subtask ids of one env's task."""
-        return tuple(self.tasks[env_id, : self.task_len[env_id]].tolist())
 
     def current_target(self) -> np.ndarray:
         """Grid kind the current subtask acts on, per env; -1 once the task is complete."""

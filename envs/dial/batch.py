@@ -30,7 +30,7 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
-from envs.batching import env_rng, reset_ids
+from envs.batching import EpisodeBatch, env_rng, reset_ids
 from envs.dial.poses import dial_poses
 from envs.dial.scene import FINGERTIP_SITE, N_JOINTS, TIMESTEP, dial_model, key_positions
 from envs.dial.task import DEFAULT_DIGITS, REWARDS, default_max_steps, parse_digits, parse_pin, sample_pin
@@ -46,7 +46,7 @@ OBS_DIM = N_JOINTS + 3 * len(key_positions())
 PinSpec = Sequence[int] | str | None
 
 
-class DialBatch:
+class DialBatch(EpisodeBatch):
     """State and rules of ``num_envs`` Dial envs, each with its own PIN and Generator."""
 
     def __init__(
@@ -57,18 +57,10 @@ class DialBatch:
         digits: str | Sequence[int] = DEFAULT_DIGITS,
         pin_length: int = 2,
     ):
-        if num_envs < 1:
-            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        if reward not in REWARDS:
-            raise ValueError(f"unknown reward {reward!r}; valid rewards: {', '.join(REWARDS)}")
-        if max_steps is not None and max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {max_steps}")
         if pin_length < 1:
             raise ValueError(f"pin_length must be >= 1, got {pin_length}")
+        super().__init__(num_envs, reward, REWARDS, max_steps)
         n = num_envs
-        self.num_envs = n
-        self.reward = reward
-        self.max_steps_override = max_steps
         self.digits = parse_digits(digits)
         self.pin_length = pin_length
         self.model = dial_model()
@@ -82,14 +74,6 @@ class DialBatch:
         self.bias = np.zeros((n, N_JOINTS))
         self.tip = np.zeros((n, 3))
         self.armed = np.zeros((n, len(self.keys)), dtype=bool)
-        self.tasks = np.full((n, 1), -1, dtype=np.int64)
-        self.task_len = np.zeros(n, dtype=np.int64)
-        self.progress = np.zeros(n, dtype=np.int64)
-        self.t = np.zeros(n, dtype=np.int64)
-        self.max_steps = np.zeros(n, dtype=np.int64)
-        self.done = np.ones(n, dtype=bool)
-        self.rngs: list[np.random.Generator | None] = [None] * n
-        self._arange = np.arange(n)
 
     def reset(
         self,
@@ -118,9 +102,7 @@ class DialBatch:
         self._set_tasks(ids, pins)
         self._sync(ids)
         self.armed[ids] = self._key_distance(ids) > RELEASE_L1
-        self.progress[ids] = 0
-        self.t[ids] = 0
-        self.done[ids] = False
+        self._restart(ids)
         return self.observe()
 
     def set_qpos(self, env_ids: Sequence[int] | np.ndarray, qpos: np.ndarray) -> np.ndarray:
@@ -144,21 +126,8 @@ class DialBatch:
         return pin
 
     def _set_tasks(self, ids: np.ndarray, pins: list[tuple[int, ...]]) -> None:
-        """Store PINs padded with -1 (plus one -1 column, the "finished" target)."""
-        longest = max(len(p) for p in pins) + 1
-        if longest > self.tasks.shape[1]:
-            grown = np.full((self.num_envs, longest), -1, dtype=np.int64)
-            grown[:, : self.tasks.shape[1]] = self.tasks
-            self.tasks = grown
-        self.tasks[ids] = -1
-        for i, pin in zip(ids.tolist(), pins, strict=True):
-            self.tasks[i, : len(pin)] = pin
-            self.task_len[i] = len(pin)
-            self.max_steps[i] = self.max_steps_override or default_max_steps(len(pin))
-
-    def task_of(self, env_id: int) -> tuple[int, ...]:
-        """The PIN of one env."""
-        return tuple(self.tasks[env_id, : self.task_len[env_id]].tolist())
+        """Store PINs in the task table, with one spare -1 column: the "finished" target."""
+        self._store_tasks(ids, pins, default_max_steps, spare=1)
 
     def current_digit(self) -> np.ndarray:
         """Digit each env must press next; -1 once its PIN is dialled."""
