@@ -13,7 +13,7 @@ from pathlib import Path
 
 import jinja2
 
-from ocn_data.episodes_table import read_info
+from ocn_data.episodes_table import dataset_world, read_info
 from ocn_data.provenance import PROVENANCE, load_provenance
 
 DATACARDS = Path(__file__).resolve().parent.parent / "datacards"
@@ -169,9 +169,7 @@ def annotation_section(annotation: dict) -> str:
 
 def dataset_card(root: str | Path, repo_id: str) -> str:
     """The README.md of a record_demos dataset published (or annotated) as `repo_id`."""
-    world = read_info(Path(root)).get("robot_type") or "craft"
-    if world not in CARD_CONTEXTS:
-        raise ValueError(f"{root} holds a {world!r} dataset; cards exist for {', '.join(CARD_CONTEXTS)} datasets.")
+    world = dataset_world(Path(root))
     text = render_card(world, CARD_CONTEXTS[world](root, repo_id))
     annotation = Path(root) / ANNOTATION
     if annotation.is_file():

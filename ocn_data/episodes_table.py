@@ -40,12 +40,20 @@ def read_info(root: Path) -> dict:
     return json.loads(path.read_text())
 
 
-def read_craft_info(root: Path, tool: str) -> dict:
-    """`read_info` of a dataset that `tool` can read: Craft's subtasks, scene and state layout only."""
-    info = read_info(root)
-    if info.get("robot_type") not in (None, "craft"):
-        raise ValueError(f"{tool} reads Craft datasets; {root} has robot_type {info.get('robot_type')!r}.")
-    return info
+WORLDS = ("craft", "dial")
+
+
+def dataset_world(root: Path) -> str:
+    """The world a record_demos dataset holds, from its `meta/info.json` robot type (record_demos
+    stores `--env` there; a dataset without one is Craft, recorded before the field was set), so
+    that tools pick the world's rules from the data rather than from a flag."""
+    world = read_info(root).get("robot_type") or "craft"
+    if world not in WORLDS:
+        raise ValueError(
+            f"{root} holds robot_type {world!r} in meta/info.json; the worlds recorded by record_demos are "
+            f"{', '.join(WORLDS)}."
+        )
+    return world
 
 
 def split_episodes(root: Path, split: str) -> range:

@@ -1,6 +1,8 @@
 """Continuous-action OCN on Dial: the Gaussian-mixture NLL on recorded Dial windows, unnormalised
 torques out of the postprocessor, `lerobot-train --policy.type=ocn` and `lerobot-eval
---env.type=dial` as real subprocesses, and the Dial rollouts of `tools.dial_rollouts`.
+--env.type=dial` as real subprocesses, the Dial rollouts of `tools.dial_rollouts`, and `ocn-eval` and
+`ocn-view` on a Dial dataset (ground-truth boundaries at the key presses, the JSON, the MCAP log of
+the free runs, the .rrd read back).
 
 One tiny recorded dataset (PINs 12 and 21) and one tiny training run are shared by the module.
 """
@@ -8,6 +10,7 @@ One tiny recorded dataset (PINs 12 and 21) and one tiny training run are shared 
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -21,13 +24,21 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from torch.distributions import Categorical, Independent, MixtureSameFamily, Normal
 
 import lerobot_policy_ocn  # noqa: F401  (registers `ocn` and `dial` as LeRobot's CLIs do)
-from envs.dial import DialBatch
+from envs.dial import PRESS_L1, DialBatch, key_positions, parse_pin
+from envs.dial.scene import N_JOINTS
+from ocn_data.dial_recorder import dial_state_names
+from ocn_data.episodes_table import load_episodes, split_episodes
+from ocn_data.mcap_log import read_mcap_messages
 from ocn_data.record_demos import main as record_demos
 from policies.ocn import OCNConfig, OCNPolicy
 from policies.ocn.processor_ocn import make_ocn_pre_post_processors
 from policies.sequence import training_windows
 from tools.dial_rollouts import free_run_success, option_subtask_success
-from tools.episode_parsing import load_ocn
+from rrd_reading import forward_fill, read_rrd, values
+from tools import ocn_eval, ocn_view
+from tools.episode_parsing import load_ocn, parse_episodes
+from tools.parsing_metrics import boundaries_from_labels
+from tools.view_scenes import DialScene
 
 BIN = Path(sys.executable).parent
 REPO_ID = "local/dial_ocn_test"
@@ -189,3 +200,116 @@ def test_dial_rollouts_of_the_trained_policy(trained):
     assert np.array_equal(table, np.zeros((2, 2)))
     with pytest.raises(ValueError, match="Unknown task"):
         free_run_success(policy, preprocessor, postprocessor, ["48"], episodes=1)
+
+
+def _key_presses(state: np.ndarray, pin: tuple[int, ...]) -> np.ndarray:
+    """The steps whose action pressed each digit of the PIN, judged from the recorded states alone:
+    the step before the first later state with the fingertip within PRESS_L1 (L1) of that digit's
+    key. The last press ends the episode, so no state follows it: it is the last step."""
+    distance = np.abs(state[:, N_JOINTS:].reshape(len(state), -1, 3)).sum(axis=2)
+    presses, start = [], 1
+    for digit in pin[:-1]:
+        at_key = start + int(np.flatnonzero(distance[start:, digit] < PRESS_L1)[0])
+        presses.append(at_key - 1)
+        start = at_key + 1
+    return np.array([*presses, len(state) - 1])
+
+
+def test_ground_truth_boundaries_are_the_key_presses(dial_dataset):
+    episodes = load_episodes(dial_dataset, split_episodes(dial_dataset, "all"))
+    for i, n in enumerate(episodes.lengths):
+        pin = parse_pin(episodes.tasks[i])
+        truth = boundaries_from_labels(episodes.subtask_index[i, :n])  # what the parsing metrics score against
+        np.testing.assert_array_equal(truth, _key_presses(episodes.state[i, :n], pin))
+        assert tuple(episodes.subtask_id[i, truth]) == pin  # each segment is its digit's
+
+
+def test_ocn_eval_on_dial(trained, dial_dataset, tmp_path):
+    out, mcap = tmp_path / "eval.json", tmp_path / "runs.mcap"
+    args = ["--policy", str(trained), "--root", str(dial_dataset), "--repo-id", REPO_ID, "--split", "all",
+            "--max-episodes", "5", "--rollouts", "2", "--out", str(out), "--mcap", str(mcap)]
+    assert ocn_eval.main(args) == 0
+    result = json.loads(out.read_text())
+    assert result["world"] == "dial" and result["episodes_parsed"] == 5 and "not_applicable" not in result
+    for key in ("f1_tol0", "f1_tol1", "align_acc", "nmi"):
+        assert 0.0 <= result[key] <= 1.0, key
+    table = result["option_subtask_success"]
+    assert sorted(table["subtasks"]) == ["1", "2"] and np.array(table["table"]).shape == (2, 2)  # digit columns
+    assert sorted(result["success_rate"]) == ["12", "21"]
+    assert all(rate in (0.0, 0.5, 1.0) for rate in result["success_rate"].values())
+    assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+
+    topics = read_mcap_messages(mcap)
+    finals = [m for m in topics["/reward"] if m["success"] is not None]
+    assert len(finals) == 2 * 2 and {m["task"] for m in finals} == {"press 1, press 2", "press 2, press 1"}
+    assert {len(m["state"]) for m in topics["/observation"]} == {len(dial_state_names())}
+    assert {len(m["action"]) for m in topics["/action"]} == {N_JOINTS}
+    for pin, task in (("12", "press 1, press 2"), ("21", "press 2, press 1")):
+        assert np.mean([m["success"] for m in finals if m["task"] == task]) == result["success_rate"][pin]
+    from mcap.reader import make_reader
+
+    with mcap.open("rb") as f:
+        metadata = {record.name: record.metadata for record in make_reader(f).iter_metadata()}
+    assert json.loads(metadata["observation.state"]["names"]) == dial_state_names()
+
+
+def test_ocn_view_on_dial(trained, dial_dataset, tmp_path):
+    path, png = tmp_path / "dial.rrd", tmp_path / "dial.png"
+    args = ["--root", str(dial_dataset), "--repo-id", REPO_ID, "--split", "all", "--episodes", "3",
+            "--policy", str(trained), "--save", str(path), "--png", str(png)]
+    assert ocn_view.main(args) == 0
+    temporal, static = read_rrd(path)
+    episodes = load_episodes(dial_dataset, split_episodes(dial_dataset, "all"), 3)
+    policy, preprocessor, _ = load_ocn(trained)
+    parses = parse_episodes(policy, preprocessor, episodes)
+    total = int(episodes.lengths.sum())
+    steps = [(i, t) for i, n in enumerate(episodes.lengths) for t in range(n)]
+    state = np.stack([episodes.state[i, t] for i, t in steps])
+
+    keys = static["/scene/keys"]
+    np.testing.assert_allclose(keys["Points3D:positions"][0], key_positions(), atol=1e-6)
+    assert keys["Points3D:labels"][0] == [str(d) for d in range(10)]
+    tip = temporal["/scene/fingertip"]
+    assert tip["frame"] == list(range(total))
+    offsets = state[:, N_JOINTS:].reshape(total, 10, 3)
+    np.testing.assert_allclose(values(tip["Points3D:positions"]), offsets[:, 3] + key_positions()[3], atol=1e-5)
+    np.testing.assert_allclose(temporal["/joints"]["Scalars:scalars"], state[:, :N_JOINTS], atol=1e-6)
+    np.testing.assert_allclose(temporal["/key_distance"]["Scalars:scalars"], np.abs(offsets).sum(2), atol=1e-5)
+    actions = np.stack([episodes.action[i, t] for i, t in steps])
+    np.testing.assert_allclose(temporal["/action"]["Scalars:scalars"], actions, atol=1e-6)
+
+    lane = temporal["/segments/subtask"]
+    digits = [f"press {episodes.subtask_id[i, t]}" for i, t in steps]
+    assert forward_fill(lane["frame"], values(lane["StateChange:state"]), total) == digits
+    lane = temporal["/segments/option"]
+    chosen = [f"option {o}" for parse in parses for o in parse.option]
+    assert forward_fill(lane["frame"], values(lane["StateChange:state"]), total) == chosen
+    p_c = np.concatenate([parse.p_c for parse in parses])
+    for k in range(p_c.shape[1]):
+        np.testing.assert_allclose(values(temporal[f"/p_c/option_{k}"]["Scalars:scalars"]), p_c[:, k], atol=1e-6)
+    end = np.concatenate([parse.end for parse in parses])
+    np.testing.assert_allclose(values(temporal["/termination/e_t"]["Scalars:scalars"]), end, atol=1e-6)
+    assert {f"/summary/usage/{d}" for d in "12"} <= set(static)
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_dial_scene_places_the_fingertip_where_the_env_has_it():
+    batch = DialBatch(3)
+    obs = batch.reset(seeds=[0, 1, 2], tasks=["12", "48", "81"])
+    obs, *_ = batch.step(np.random.default_rng(0).uniform(-1, 1, (3, N_JOINTS)))
+    np.testing.assert_allclose(DialScene().fingertip(obs), batch.tip, atol=1e-6)
+
+
+def test_a_dataset_of_another_world_is_one_clear_error(trained, dial_dataset, tmp_path, capsys):
+    root = tmp_path / "other"
+    shutil.copytree(dial_dataset, root)
+    info_path = root / "meta" / "info.json"
+    info_path.write_text(json.dumps({**json.loads(info_path.read_text()), "robot_type": "koch"}))
+    capsys.readouterr()
+    eval_args = ["--policy", str(trained), "--root", str(root), "--repo-id", REPO_ID, "--out", str(tmp_path / "x.json")]
+    assert ocn_eval.main(eval_args) == 2
+    assert ocn_view.main(["--root", str(root), "--repo-id", REPO_ID, "--save", str(tmp_path / "x.rrd")]) == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert [line.split(":")[0] for line in errors] == ["ocn-eval", "ocn-view"]
+    assert all("robot_type 'koch'" in line and "craft, dial" in line for line in errors)
+    assert not (tmp_path / "x.json").exists() and not (tmp_path / "x.rrd").exists()

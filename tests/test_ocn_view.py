@@ -6,7 +6,6 @@ against the model's parse (parse_episodes), both computed here independently of 
 
 from __future__ import annotations
 
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -14,39 +13,11 @@ import pytest
 
 from envs.craft.world import SUBTASK_LETTERS, SUBTASK_NAMES
 from ocn_data.episodes_table import load_episodes, split_episodes
-from tools.ocn_view import main, scene_images
+from rrd_reading import forward_fill, read_rrd, values
+from tools.ocn_view import main
+from tools.view_scenes import craft_scene_images
 
 CRAFT_REPO_ID = "local/craft_small"
-
-
-def _read_rrd(path: Path) -> tuple[dict[str, dict[str, list]], dict[str, dict[str, list]]]:
-    """(temporal, static): per entity path, each column's values over all chunks; temporal rows
-    are sorted by frame."""
-    from rerun.experimental import RrdReader
-
-    temporal: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
-    static: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
-    for chunk in RrdReader(path).store().stream():
-        columns = (static if chunk.is_static else temporal)[chunk.entity_path]
-        for name, values in chunk.to_record_batch().to_pydict().items():
-            columns[name] += values
-    for columns in temporal.values():
-        order = np.argsort(columns["frame"], kind="stable")
-        for name in columns:
-            columns[name] = [columns[name][i] for i in order]
-    return temporal, static
-
-
-def _values(column: list) -> list:
-    """A component column holds one batch per row; every batch here has one value."""
-    assert all(len(batch) == 1 for batch in column)
-    return [batch[0] for batch in column]
-
-
-def _forward_fill(frames: list[int], states: list[str], total: int) -> list[str]:
-    """The state in force at each frame 0..total-1 of a state-change lane."""
-    at = np.searchsorted(np.asarray(frames), np.arange(total), side="right") - 1
-    return [states[i] for i in at]
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +39,7 @@ def with_policy(craft_dataset, ocn_checkpoint, tmp_path_factory):
     args = ["--root", str(craft_dataset), "--repo-id", CRAFT_REPO_ID, "--split", "val",
             "--policy", str(ocn_checkpoint), "--save", str(out / "view.rrd"), "--png", str(out / "view.png")]
     assert main(args) == 0
-    return (*_read_rrd(out / "view.rrd"), out)
+    return (*read_rrd(out / "view.rrd"), out)
 
 
 def test_switches_are_logged_where_the_model_switched(with_policy, expected):
@@ -79,7 +50,7 @@ def test_switches_are_logged_where_the_model_switched(with_policy, expected):
     assert switches.size > 0, "the fixture's checkpoint should switch options inside episodes"
     assert temporal["/log/switch"]["frame"] == switches.tolist()
     assert temporal["/termination/switch"]["frame"] == switches.tolist()
-    for frame, text in zip(switches, _values(temporal["/log/switch"]["TextLog:text"]), strict=True):
+    for frame, text in zip(switches, values(temporal["/log/switch"]["TextLog:text"]), strict=True):
         e = int(np.searchsorted(offsets, frame, side="right") - 1)
         option = parses[e].option
         step = frame - offsets[e]
@@ -95,11 +66,11 @@ def test_option_distribution_and_termination_match_the_parse(with_policy, expect
     for k in range(p_c.shape[1]):
         series = temporal[f"/p_c/option_{k}"]
         assert series["frame"] == list(range(total))
-        np.testing.assert_allclose(_values(series["Scalars:scalars"]), p_c[:, k], atol=1e-6)
+        np.testing.assert_allclose(values(series["Scalars:scalars"]), p_c[:, k], atol=1e-6)
     end = np.concatenate([parse.end for parse in parses])
-    np.testing.assert_allclose(_values(temporal["/termination/e_t"]["Scalars:scalars"]), end, atol=1e-6)
+    np.testing.assert_allclose(values(temporal["/termination/e_t"]["Scalars:scalars"]), end, atol=1e-6)
     lane = temporal["/segments/option"]
-    chosen = _forward_fill(lane["frame"], _values(lane["StateChange:state"]), total)
+    chosen = forward_fill(lane["frame"], values(lane["StateChange:state"]), total)
     assert chosen == [f"option {o}" for parse in parses for o in parse.option]
 
 
@@ -108,18 +79,18 @@ def test_true_segments_match_the_dataset(with_policy, expected):
     episodes, _, offsets = expected
     total = int(episodes.lengths.sum())
     lane = temporal["/segments/subtask"]
-    states = _values(lane["StateChange:state"])
+    states = values(lane["StateChange:state"])
     assert lane["frame"][-1] == total and states[-1] == ""  # the lane ends after the last step
     truth = [f"{SUBTASK_LETTERS[s]} {SUBTASK_NAMES[s]}" for i, n in enumerate(episodes.lengths)
              for s in episodes.subtask_id[i, :n]]
-    assert _forward_fill(lane["frame"], states, total) == truth
+    assert forward_fill(lane["frame"], states, total) == truth
     starts = [offset + t for i, (offset, n) in enumerate(zip(offsets, episodes.lengths, strict=True))
               for t in range(n) if t == 0 or episodes.subtask_index[i, t] != episodes.subtask_index[i, t - 1]]
     assert lane["frame"][:-1] == starts
     assert temporal["/segments/episode"]["frame"][:-1] == offsets.tolist()
     assert len(temporal["/scene"]["frame"]) == len(temporal["/action"]["frame"]) == total
     actions = np.concatenate([episodes.action[i, :n, 0] for i, n in enumerate(episodes.lengths)])
-    np.testing.assert_array_equal(_values(temporal["/action"]["Scalars:scalars"]), actions)
+    np.testing.assert_array_equal(values(temporal["/action"]["Scalars:scalars"]), actions)
 
 
 def test_option_usage_summary_and_blueprint(with_policy, expected):
@@ -130,7 +101,7 @@ def test_option_usage_summary_and_blueprint(with_policy, expected):
     subtask = np.concatenate([episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)])
     option = np.concatenate([parse.option for parse in parses])
     for s in np.unique(subtask):
-        bars = _values(static[f"/summary/usage/{SUBTASK_LETTERS[s]}"]["BarChart:values"])[0]["buffer"]
+        bars = values(static[f"/summary/usage/{SUBTASK_LETTERS[s]}"]["BarChart:values"])[0]["buffer"]
         share = np.bincount(option[subtask == s], minlength=parses[0].p_c.shape[1]) / (subtask == s).sum()
         np.testing.assert_allclose(bars, share)
     assert "option 0" in static["/summary/table"]["TextDocument:text"][0][0]
@@ -150,12 +121,12 @@ def test_ground_truth_only_without_policy(craft_dataset, tmp_path):
     path = tmp_path / "truth.rrd"
     args = ["--root", str(craft_dataset), "--repo-id", CRAFT_REPO_ID, "--episodes", "2,5", "--save", str(path)]
     assert main(args) == 0
-    temporal, static = _read_rrd(path)
+    temporal, static = read_rrd(path)
     model_only = ("/p_c", "/termination", "/summary/usage")
     assert not [entity for entity in {**temporal, **static} if entity.startswith(model_only)]
     assert "/segments/option" not in temporal and "/log/switch" not in temporal
     episodes = load_episodes(craft_dataset, range(20))
-    lane = _values(temporal["/segments/episode"]["StateChange:state"])
+    lane = values(temporal["/segments/episode"]["StateChange:state"])
     assert lane == [f"episode 2: {episodes.tasks[2]}", f"episode 5: {episodes.tasks[5]}", ""]
     assert len(temporal["/scene"]["frame"]) == episodes.lengths[2] + episodes.lengths[5]
 
@@ -167,7 +138,7 @@ def test_scene_is_the_env_frame():
     observation, _ = env.reset(seed=7)
     for action in (0, 3, 4):
         observation, *_ = env.step(action)
-    np.testing.assert_array_equal(scene_images(observation[None])[0], env.render())
+    np.testing.assert_array_equal(craft_scene_images(observation[None])[0], env.render())
 
 
 @pytest.fixture

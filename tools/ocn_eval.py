@@ -3,12 +3,13 @@
 On the split's episodes (default "val") it runs the policy over each whole episode and scores its
 parse against the ground-truth subtasks with the shared parsing metrics: F1 at tolerance 0 and 1
 and task alignment from the predicted boundaries, NMI from per-step labels (OCN: the chosen option
-argmax p^c). In the Craft env it measures the whole policy's free-run success per task and, for
-a policy made of options, each frozen option alone on each subtask (paper table 1), drawn as a PNG
-beside the JSON. Every model type parses through `tools.episode_parsing` (OMPN: the top-k steps of
-its expected expansion; compILE: its argmax segment boundaries, labelled by its concrete latents);
-what does not apply to a model (OMPN has no labels, OMPN and compILE no options) is null in the
-JSON, with the reason under "not_applicable".
+argmax p^c). In the dataset's world (Craft or Dial, read from the dataset; `tools.worlds`) it
+measures the whole policy's free-run success per task (Dial: per PIN) and, for a policy made of
+options, each frozen option alone on each subtask (paper table 1; Dial: each digit), drawn as a
+PNG beside the JSON. Every model type parses through `tools.episode_parsing` (OMPN: the top-k steps
+of its expected expansion; compILE: its argmax segment boundaries, labelled by its concrete
+latents); what does not apply to a model (OMPN has no labels, OMPN and compILE no options) is null
+in the JSON, with the reason under "not_applicable".
 """
 
 from __future__ import annotations
@@ -45,22 +46,6 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def _recording_settings(root: Path) -> dict[str, Any]:
-    """Env mode of the dataset from record_demos' provenance file (paper mode if absent)."""
-    from ocn_data.provenance import load_provenance
-
-    sessions = load_provenance(root)["sessions"]
-    return sessions[-1] if sessions else {"mode": "paper"}
-
-
-def _subtask_letters(tasks: list[str], mode: str) -> list[str]:
-    """Subtasks used by the tasks, as letters, in order of first use."""
-    from envs.craft.world import SUBTASK_LETTERS, parse_task
-
-    used = dict.fromkeys(s for task in tasks for s in parse_task(task, mode))
-    return [SUBTASK_LETTERS[s] for s in used]
-
-
 def plot_option_table(table: np.ndarray, subtasks: list[str], path: Path, title: str) -> None:
     """Heat map of option x subtask success rates, values printed in the cells."""
     import matplotlib
@@ -85,18 +70,19 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     """Everything `ocn-eval` reports, as the JSON it writes."""
     import torch
 
-    from ocn_data.episodes_table import load_episodes, read_craft_info, split_episodes
+    from ocn_data.episodes_table import load_episodes, read_info, split_episodes
     from ocn_data.mcap_log import check_new_log
-    from tools.craft_rollouts import free_run_success, option_subtask_success
-    from tools.rollouts import OptionPolicy
+    from tools import rollouts
     from tools.episode_parsing import load_policy, parser_of, score_segmentations
+    from tools.worlds import world_of
 
     if args.mcap is not None:
         check_new_log(args.mcap)
-    info = read_craft_info(args.root, "ocn-eval")
+    world = world_of(args.root)
+    info = read_info(args.root)
     policy, preprocessor, postprocessor = load_policy(args.policy, args.device)
     parser = parser_of(policy)
-    has_options = isinstance(policy, OptionPolicy)
+    has_options = isinstance(policy, rollouts.OptionPolicy)
     if args.mcap is not None and not has_options:
         raise ValueError(f"--mcap logs the option choices of a policy made of options; `{policy.name}` has none.")
     torch.manual_seed(args.seed)  # the policy samples its actions: same seed, same rollouts
@@ -105,15 +91,18 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     parses = parser.segment(policy, preprocessor, episodes, args.batch_size)
     scores = score_segmentations(episodes, parses)
 
-    mode = _recording_settings(args.root)["mode"]
-    tasks = sorted(set(episodes.tasks), key=policy.config.tasks.index)
-    letters = _subtask_letters(tasks, mode)
+    dataset_tasks = sorted(set(episodes.tasks), key=policy.config.tasks.index)
+    tasks = [world.task_key(task) for task in dataset_tasks]
+    subtasks = world.used_subtasks(dataset_tasks)
+    acting = world.rollouts()
     option_table = None
     not_applicable = {}
     if has_options:
-        table = option_subtask_success(policy, preprocessor, postprocessor, letters, args.rollouts, mode, args.seed)
+        table = rollouts.option_subtask_success(
+            policy, preprocessor, postprocessor, acting, subtasks, args.rollouts, args.seed
+        )
         option_table = {
-            "subtasks": letters,
+            "subtasks": subtasks,
             "rows": [f"option {i}" for i in range(table.shape[0])],
             "table": table.round(4).tolist(),
         }
@@ -125,12 +114,14 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         not_applicable["nmi"] = parser.no_labels
     log = None
     if args.mcap is not None:
-        from envs.craft.observation import OBS_NAMES
         from tools.rollout_mcap import RolloutMcapWriter
 
-        log = RolloutMcapWriter(args.mcap, info["fps"], list(OBS_NAMES), str(args.policy))
+        state_names = info["features"]["observation.state"]["names"]
+        log = RolloutMcapWriter(args.mcap, info["fps"], list(state_names), str(args.policy))
     try:
-        success = free_run_success(policy, preprocessor, postprocessor, tasks, args.rollouts, mode, args.seed, log)
+        success = rollouts.free_run_success(
+            policy, preprocessor, postprocessor, acting, tasks, args.rollouts, args.seed, log
+        )
     finally:
         if log is not None:
             log.close()
@@ -146,6 +137,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         "rollouts_per_cell": args.rollouts,
         "policy": str(args.policy),
         "policy_type": policy.name,
+        "world": world.name,
         "dataset": {"root": str(args.root), "repo_id": args.repo_id},
         "wall_s": round(time.perf_counter() - started, 2),
     }

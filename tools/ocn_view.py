@@ -1,4 +1,4 @@
-"""`ocn-view`: recorded Craft demonstrations in rerun, with a trained OCN's options drawn over them.
+"""`ocn-view`: recorded Craft or Dial demonstrations in rerun, with a trained OCN's options drawn over them.
 
 Logs the selected episodes of a dataset, with or without a policy, to an .rrd file (--save), a
 spawned viewer (--spawn) or a served web viewer (--serve); --png draws the segmentation of a few
@@ -8,12 +8,12 @@ Timeline `frame` (a sequence): the logged episodes laid one after another, so st
 episode is frame offset + t, its offset being the summed lengths of the episodes logged before
 it; scrubbing or playing runs through all of them. The `segments/episode` lane and the
 `log/episode` lines show where each episode starts, and a frame after the last step ends the
-lanes. Entity paths ([model]: only with --policy):
+lanes. The world (read from the dataset) draws its own scene and series (`tools/view_scenes.py`:
+Craft's grid and action; Dial's fingertip and keys in 3D, joint angles, fingertip-to-key distances
+and motor controls). Every world's entity paths ([model]: only with --policy):
 
-    scene                    Image         the Craft grid, drawn from the recorded state by envs.craft.render
-    action                   Scalars       the action code, as points (0 down, 1 up, 2 left, 3 right, 4 use)
     segments/episode         StateChange   "episode 16: get wood, get iron", from the episode's first step
-    segments/subtask         StateChange   the true subtask ("A get wood"), from the first step of each segment
+    segments/subtask         StateChange   the true subtask ("A get wood", "press 1"), from the first step of each segment
     segments/option          StateChange   the chosen option argmax p^c ("option 2"), from each switch [model]
     p_c/option_<k>           Scalars       p^c_t of option k, the controller's option distribution [model]
     termination/e_t          Scalars       e_t, the termination probability (1 at an episode's first step) [model]
@@ -21,12 +21,13 @@ lanes. Entity paths ([model]: only with --policy):
     log/episode              TextLog       one line per episode, at its first step
     log/switch               TextLog       one line per option switch: episode, step, old and new option [model]
     summary/table            TextDocument  what was logged and, with a model, the option usage per subtask
-    summary/usage/<letter>   BarChart      share of the subtask's steps spent in each chosen option [model]
+    summary/usage/<code>     BarChart      share of the subtask's steps spent in each chosen option [model]
+                                           (code: Craft's letter, Dial's digit)
 
 Styles (series names and colours, the state lanes' colours, the image format) and the summary
 are static. Subtask and option colours are those of the PNG. The default blueprint puts the scene,
 the summary and the event log on the left, and on the right the segmentation lanes (true subtask
-against chosen option) above the p^c, e_t and action plots.
+against chosen option) above the p^c and e_t plots and the world's own plots.
 """
 
 from __future__ import annotations
@@ -44,23 +45,15 @@ import rerun as rr
 import rerun.blueprint as rrb
 from tqdm import tqdm
 
-from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING
-from envs.craft.render import TILE, render_batch
-from envs.craft.world import ACTION_NAMES, BOUNDARY, GRID_SIZE, INTERIOR_SIZE, N_SUBTASKS, SUBTASK_LETTERS
-from ocn_data.episodes_table import read_craft_info
+from ocn_data.episodes_table import read_info
 from tools.parsing_metrics import segment_starts
-from tools.segmentation_plot import (
-    SUBTASK_COLOURS,
-    SWITCH_COLOUR,
-    EpisodeView,
-    option_colours,
-    plot_segmentation,
-    subtask_label,
-)
+from tools.segmentation_plot import SWITCH_COLOUR, EpisodeView, option_colours, plot_segmentation, subtask_colours
+from tools.worlds import World, world_of
 
 if TYPE_CHECKING:
     from ocn_data.episodes_table import EpisodeArrays
     from tools.episode_parsing import EpisodeParse
+    from tools.view_scenes import Scene
 
 TIMELINE = "frame"
 TERMINATION_COLOUR = (90, 90, 90)
@@ -68,7 +61,7 @@ TERMINATION_COLOUR = (90, 90, 90)
 
 @dataclass
 class Episode:
-    """One episode to log, cut to its real steps: state [T, 81], action [T], subtask_index and
+    """One episode to log, cut to its real steps: state [T, S], action [T, A], subtask_index and
     subtask_id [T], and the policy's parse (None without a policy)."""
 
     index: int
@@ -78,6 +71,11 @@ class Episode:
     subtask_index: np.ndarray
     subtask_id: np.ndarray
     parse: EpisodeParse | None
+
+    @property
+    def length(self) -> int:
+        """Steps of the episode (the action may hold several values per step)."""
+        return self.subtask_id.size
 
     @property
     def title(self) -> str:
@@ -150,7 +148,7 @@ def _episodes_of(group: EpisodeArrays, parses: list[EpisodeParse | None]) -> lis
             index=int(group.episode_index[i]),
             task=group.tasks[i],
             state=group.state[i, :n],
-            action=group.action[i, :n, 0],
+            action=group.action[i, :n],
             subtask_index=group.subtask_index[i, :n],
             subtask_id=group.subtask_id[i, :n],
             parse=parse,
@@ -174,24 +172,14 @@ def load_view(args: argparse.Namespace, info: dict[str, Any]) -> list[Episode]:
     ]
 
 
-def scene_images(states: np.ndarray) -> np.ndarray:
-    """Frames [T, 160, 160, 3] uint8 of compact Craft states [T, 81], drawn by the env's own
-    renderer: the state keeps only the grid's interior (the border is always boundary) and the
-    agent's interior coordinates, so both are put back first."""
-    n = len(states)
-    grid = np.full((n, GRID_SIZE, GRID_SIZE), BOUNDARY, dtype=np.int64)
-    grid[:, 1:-1, 1:-1] = states[:, CELLS].reshape(n, INTERIOR_SIZE, INTERIOR_SIZE)
-    return render_batch(grid, states[:, [AGENT_ROW, AGENT_COL]] + 1, states[:, FACING])
-
-
 def option_label(option: int) -> str:
     """How the option lane, the series and the summary name an option."""
     return f"option {option}"
 
 
-def option_usage(episodes: list[Episode], n_options: int) -> np.ndarray:
+def option_usage(episodes: list[Episode], n_subtasks: int, n_options: int) -> np.ndarray:
     """Steps of each subtask (rows, by subtask id) spent in each chosen option (columns)."""
-    counts = np.zeros((N_SUBTASKS, n_options), dtype=np.int64)
+    counts = np.zeros((n_subtasks, n_options), dtype=np.int64)
     for episode in episodes:
         np.add.at(counts, (episode.subtask_id, episode.parse.option), 1)
     return counts
@@ -201,15 +189,12 @@ def _at(offset: int, steps: np.ndarray | list[int]) -> list[rr.TimeColumn]:
     return [rr.TimeColumn(TIMELINE, sequence=offset + np.asarray(steps, dtype=np.int64))]
 
 
-def _log_styles(rec: rr.RecordingStream, n_options: int) -> None:
+def _log_styles(rec: rr.RecordingStream, n_options: int, world: World, scene: Scene) -> None:
     """Static styles shared by every episode's columns: logged once, not per step."""
-    side = GRID_SIZE * TILE
-    rec.log("scene", rr.Image.from_fields(format=rr.components.ImageFormat(
-        width=side, height=side, color_model="RGB", channel_datatype="U8")), static=True)
-    codes = ", ".join(f"{code} {name}" for code, name in enumerate(ACTION_NAMES))
-    rec.log("action", rr.SeriesPoints(names=f"action ({codes})", marker_sizes=3), static=True)
+    scene.log_styles(rec)
+    labels = world.subtask_labels
     rec.log("segments/subtask", rr.StateConfiguration(
-        values=[subtask_label(s) for s in range(N_SUBTASKS)], colors=SUBTASK_COLOURS), static=True)
+        values=list(labels), colors=subtask_colours(len(labels))), static=True)
     if n_options == 0:
         return
     labels = [option_label(k) for k in range(n_options)]
@@ -222,16 +207,14 @@ def _log_styles(rec: rr.RecordingStream, n_options: int) -> None:
         names="option switch", colors=SWITCH_COLOUR, markers="cross", marker_sizes=6), static=True)
 
 
-def _log_episode(rec: rr.RecordingStream, episode: Episode, offset: int) -> None:
+def _log_episode(rec: rr.RecordingStream, episode: Episode, offset: int, world: World, scene: Scene) -> None:
     """One episode from frame `offset` on, as one send_columns call per entity."""
-    steps = np.arange(episode.action.size)
-    scene = scene_images(episode.state).reshape(steps.size, -1)
-    rec.send_columns("scene", indexes=_at(offset, steps), columns=rr.Image.columns(buffer=scene))
-    rec.send_columns("action", indexes=_at(offset, steps), columns=rr.Scalars.columns(scalars=episode.action))
+    steps = np.arange(episode.length)
+    scene.log_steps(rec, episode, _at(offset, steps))
     rec.send_columns("segments/episode", indexes=_at(offset, [0]),
                      columns=rr.StateChange.columns(state=[episode.title]))
     starts = segment_starts(episode.subtask_index)
-    truth = [subtask_label(s) for s in episode.subtask_id[starts]]
+    truth = [world.subtask_labels[s] for s in episode.subtask_id[starts]]
     rec.send_columns("segments/subtask", indexes=_at(offset, starts), columns=rr.StateChange.columns(state=truth))
     line = f"{episode.title} ({steps.size} steps): subtasks {', '.join(truth)}"
     rec.send_columns("log/episode", indexes=_at(offset, [0]),
@@ -264,16 +247,18 @@ def _log_parse(rec: rr.RecordingStream, episode: Episode, offset: int) -> None:
                      columns=rr.TextLog.columns(text=lines, level=["INFO"] * len(lines)))
 
 
-def _summary_markdown(episodes: list[Episode], usage: np.ndarray | None, args: argparse.Namespace) -> str:
+def _summary_markdown(
+    episodes: list[Episode], usage: np.ndarray | None, args: argparse.Namespace, world: World
+) -> str:
     """What was logged and, with a policy, the share of each subtask's steps per chosen option."""
-    steps = sum(e.action.size for e in episodes)
+    steps = sum(e.length for e in episodes)
     policy = f"policy `{args.policy}`" if args.policy else "no policy (ground truth only)"
     text = f"**{args.repo_id}** (`{args.root}`): {len(episodes)} episodes, {steps} steps; {policy}.\n"
     if usage is None:
         return text
     options = [option_label(k) for k in range(usage.shape[1])]
     rows = [
-        f"| {subtask_label(s)} | {usage[s].sum()} | " + " | ".join(f"{p:.2f}" for p in usage[s] / usage[s].sum()) + " |"
+        f"| {world.subtask_labels[s]} | {usage[s].sum()} | " + " | ".join(f"{p:.2f}" for p in usage[s] / usage[s].sum()) + " |"
         for s in np.flatnonzero(usage.sum(1))
     ]
     return "\n".join([
@@ -285,45 +270,49 @@ def _summary_markdown(episodes: list[Episode], usage: np.ndarray | None, args: a
     ]) + "\n"
 
 
-def _log_summary(rec: rr.RecordingStream, episodes: list[Episode], args: argparse.Namespace) -> None:
+def _log_summary(rec: rr.RecordingStream, episodes: list[Episode], args: argparse.Namespace, world: World) -> None:
     """Static cross-episode summary: the table, and one bar chart of option usage per subtask."""
     parse = episodes[0].parse
-    usage = None if parse is None else option_usage(episodes, parse.p_c.shape[1])
-    markdown = _summary_markdown(episodes, usage, args)
+    usage = None if parse is None else option_usage(episodes, len(world.subtask_codes), parse.p_c.shape[1])
+    markdown = _summary_markdown(episodes, usage, args, world)
     rec.log("summary/table", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
     if usage is None:
         return
+    colours = subtask_colours(len(world.subtask_codes))
     for s in np.flatnonzero(usage.sum(1)):
         share = usage[s] / usage[s].sum()
-        rec.log(f"summary/usage/{SUBTASK_LETTERS[s]}", rr.BarChart(share, color=SUBTASK_COLOURS[s]), static=True)
+        rec.log(f"summary/usage/{world.subtask_codes[s]}", rr.BarChart(share, color=colours[s]), static=True)
 
 
-def log_episodes(rec: rr.RecordingStream, episodes: list[Episode], args: argparse.Namespace) -> None:
+def log_episodes(
+    rec: rr.RecordingStream, episodes: list[Episode], args: argparse.Namespace, world: World, scene: Scene
+) -> None:
     """Everything of the recording, episode after episode on the `frame` timeline."""
     parse = episodes[0].parse
-    _log_styles(rec, 0 if parse is None else parse.p_c.shape[1])
-    _log_summary(rec, episodes, args)
+    _log_styles(rec, 0 if parse is None else parse.p_c.shape[1], world, scene)
+    _log_summary(rec, episodes, args, world)
     offset = 0
     for episode in tqdm(episodes, desc="ocn-view", unit="ep"):
-        _log_episode(rec, episode, offset)
-        offset += episode.action.size
+        _log_episode(rec, episode, offset, world, scene)
+        offset += episode.length
     lanes = ["segments/episode", "segments/subtask"] + ([] if parse is None else ["segments/option"])
     for lane in lanes:  # an empty state ends the last segment of every lane
         rec.send_columns(lane, indexes=_at(offset, [0]), columns=rr.StateChange.columns(state=[""]))
 
 
-def blueprint(subtasks: list[int], has_model: bool, fps: float) -> rrb.Blueprint:
+def blueprint(subtasks: list[int], has_model: bool, fps: float, world: World, scene: Scene) -> rrb.Blueprint:
     """Default layout: scene, summary and event log on the left; on the right the segmentation
-    lanes above the p^c, e_t and action plots, all following the `frame` cursor."""
+    lanes above the p^c and e_t plots and the world's own plots, all following the `frame` cursor."""
     summary = [rrb.TextDocumentView(origin="summary/table", name="summary")]
     if has_model:
         summary.append(rrb.Grid(
-            *[rrb.BarChartView(origin=f"summary/usage/{SUBTASK_LETTERS[s]}", name=f"{subtask_label(s)}: options")
+            *[rrb.BarChartView(origin=f"summary/usage/{world.subtask_codes[s]}",
+                               name=f"{world.subtask_labels[s]}: options")
               for s in subtasks],
             name="option usage per subtask",
         ))
     left = rrb.Vertical(
-        rrb.Spatial2DView(origin="scene", name="scene"),
+        scene.view(),
         rrb.Tabs(*summary),
         rrb.TextLogView(origin="log", name="episodes and option switches"),
         row_shares=[3, 2, 2],
@@ -335,9 +324,8 @@ def blueprint(subtasks: list[int], has_model: bool, fps: float) -> rrb.Blueprint
             rrb.TimeSeriesView(origin="p_c", name="controller's option distribution p^c", axis_y=unit),
             rrb.TimeSeriesView(origin="termination", name="termination e_t and option switches", axis_y=unit),
         ]
-    plots.append(rrb.TimeSeriesView(origin="action", name="action",
-                                    axis_y=rrb.ScalarAxis(range=(-0.5, len(ACTION_NAMES) - 0.5))))
-    right = rrb.Vertical(*plots, row_shares=[2] * (len(plots) - 1) + [1])
+    own = scene.plots()
+    right = rrb.Vertical(*plots, *own, row_shares=[2] * len(plots) + [1] * len(own))
     return rrb.Blueprint(
         rrb.Horizontal(left, right, column_shares=[2, 3]),
         rrb.TimePanel(timeline=TIMELINE, fps=fps, state="expanded"),
@@ -361,22 +349,24 @@ def _open_recording(args: argparse.Namespace, layout: rrb.Blueprint) -> rr.Recor
     return rec
 
 
-def write_recording(episodes: list[Episode], args: argparse.Namespace, fps: float) -> rr.RecordingStream:
+def write_recording(episodes: list[Episode], args: argparse.Namespace, fps: float, world: World) -> rr.RecordingStream:
     """Log everything to the chosen sink and flush. Returns the stream: a served one lives only as
     long as it does."""
     subtasks = sorted({int(s) for e in episodes for s in np.unique(e.subtask_id)})
-    rec = _open_recording(args, blueprint(subtasks, episodes[0].parse is not None, fps))
-    log_episodes(rec, episodes, args)
+    scene = world.scene()
+    rec = _open_recording(args, blueprint(subtasks, episodes[0].parse is not None, fps, world, scene))
+    log_episodes(rec, episodes, args, world, scene)
     rec.flush()
     return rec
 
 
-def write_png(episodes: list[Episode], args: argparse.Namespace) -> None:
+def write_png(episodes: list[Episode], args: argparse.Namespace, world: World) -> None:
     """The segmentation of the first --png-episodes episodes, drawn with matplotlib."""
     views = [EpisodeView(e.title, e.subtask_index, e.subtask_id, e.parse) for e in episodes[: args.png_episodes]]
     args.png.parent.mkdir(parents=True, exist_ok=True)
     title = f"{args.repo_id}: true subtasks against chosen options\npolicy {args.policy}"
-    plot_segmentation(views, args.png, title if args.policy else f"{args.repo_id}: true subtasks")
+    plot_segmentation(views, args.png, title if args.policy else f"{args.repo_id}: true subtasks",
+                      world.subtask_codes, world.subtask_labels)
 
 
 def _wait_for_interrupt() -> None:
@@ -391,19 +381,20 @@ def _wait_for_interrupt() -> None:
 def main(argv: list[str] | None = None) -> int:
     args = _parse_args(argv)
     try:
-        info = read_craft_info(args.root, "ocn-view")
+        world = world_of(args.root)
+        info = read_info(args.root)
         episodes = load_view(args, info)
     except (FileNotFoundError, ValueError) as error:
         print(f"ocn-view: {error}", file=sys.stderr)
         return 2
     if args.png:
-        write_png(episodes, args)
+        write_png(episodes, args, world)
         print(f"wrote {args.png}")
     if not (args.save or args.spawn or args.serve):
         return 0
     started = time.perf_counter()
-    rec = write_recording(episodes, args, float(info["fps"]))
-    steps = sum(e.action.size for e in episodes)
+    rec = write_recording(episodes, args, float(info["fps"]), world)
+    steps = sum(e.length for e in episodes)
     target = args.save or ("the spawned viewer" if args.spawn else "the server")
     print(f"logged {len(episodes)} episodes ({steps} steps) to {target} in {time.perf_counter() - started:.1f} s")
     if args.serve:

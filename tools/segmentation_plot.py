@@ -16,17 +16,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envs.craft.world import SUBTASK_LETTERS, SUBTASK_NAMES
 from tools.parsing_metrics import segment_starts
 
 if TYPE_CHECKING:  # the parse module loads torch and LeRobot; drawing needs neither
     from tools.episode_parsing import EpisodeParse
 
-# Subtask colours by subtask id (matplotlib's tab10), option colours by option index (Dark2): two
-# different palettes, since option k is not subtask k.
+# Subtask colours by subtask id (matplotlib's tab10: Craft's 8 subtasks, Dial's 10 digits), option
+# colours by option index (Dark2): two different palettes, since option k is not subtask k.
 SUBTASK_COLOURS = np.array(
     [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40),
-     (148, 103, 189), (140, 86, 75), (227, 119, 194), (188, 189, 34)],
+     (148, 103, 189), (140, 86, 75), (227, 119, 194), (188, 189, 34),
+     (127, 127, 127), (23, 190, 207)],
     dtype=np.uint8,
 )
 OPTION_COLOURS = np.array(
@@ -42,9 +42,11 @@ def option_colours(n_options: int) -> np.ndarray:
     return OPTION_COLOURS[np.arange(n_options) % len(OPTION_COLOURS)]
 
 
-def subtask_label(subtask: int) -> str:
-    """A Craft subtask id as its letter and name, e.g. "A get wood"."""
-    return f"{SUBTASK_LETTERS[subtask]} {SUBTASK_NAMES[subtask]}"
+def subtask_colours(n_subtasks: int) -> np.ndarray:
+    """RGB uint8 [n_subtasks, 3] of a world's subtask ids 0 .. n_subtasks - 1."""
+    if n_subtasks > len(SUBTASK_COLOURS):
+        raise ValueError(f"{n_subtasks} subtasks, but the palette has {len(SUBTASK_COLOURS)} colours.")
+    return SUBTASK_COLOURS[:n_subtasks]
 
 
 @dataclass
@@ -72,12 +74,13 @@ def _draw_bar(ax, starts: np.ndarray, labels: np.ndarray, length: int, y: float,
         ax.text((start + stop - 1) / 2, y + 0.4, names[label], ha="center", va="center", fontsize=7, color="white")
 
 
-def _draw_episode(axes: Sequence, episode: EpisodeView) -> None:
-    """The column of one episode: bars, then p^c and e_t when there is a parse."""
+def _draw_episode(axes: Sequence, episode: EpisodeView, codes: Sequence[str]) -> None:
+    """The column of one episode: bars (subtasks named by their `codes`), then p^c and e_t when
+    there is a parse."""
     length = episode.subtask_id.size
     bars = axes[0]
     _draw_bar(bars, segment_starts(episode.subtask_index), episode.subtask_id, length, 1.1, SUBTASK_COLOURS,
-              SUBTASK_LETTERS)
+              codes)
     bars.set_title(episode.title, fontsize=8)
     bars.set_yticks([1.5], ["subtask"])
     if episode.parse is None:
@@ -106,13 +109,14 @@ def _draw_episode(axes: Sequence, episode: EpisodeView) -> None:
             ax.axvline(switch, color=_rgb(SWITCH_COLOUR), lw=0.6, ls=":")
 
 
-def _legend_handles(episodes: Sequence[EpisodeView]) -> list:
-    """Patches for the subtasks drawn and lines for the options, one legend for the figure."""
+def _legend_handles(episodes: Sequence[EpisodeView], labels: Sequence[str]) -> list:
+    """Patches for the subtasks drawn (named by their `labels`) and lines for the options, one
+    legend for the figure."""
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
     used = sorted({int(s) for episode in episodes for s in np.unique(episode.subtask_id)})
-    handles = [Patch(color=_rgb(SUBTASK_COLOURS[s]), label=subtask_label(s)) for s in used]
+    handles = [Patch(color=_rgb(SUBTASK_COLOURS[s]), label=labels[s]) for s in used]
     parse = episodes[0].parse
     if parse is not None:
         colours = option_colours(parse.p_c.shape[1])
@@ -121,8 +125,11 @@ def _legend_handles(episodes: Sequence[EpisodeView]) -> list:
     return handles
 
 
-def plot_segmentation(episodes: Sequence[EpisodeView], path: Path, title: str) -> None:
-    """Write the PNG of Craft `episodes`, one column each."""
+def plot_segmentation(
+    episodes: Sequence[EpisodeView], path: Path, title: str, codes: Sequence[str], labels: Sequence[str]
+) -> None:
+    """Write the PNG of `episodes`, one column each; a world's subtask ids are named by their short
+    `codes` on the bars ("A", "1") and by their `labels` in the legend ("A get wood", "press 1")."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -136,9 +143,9 @@ def plot_segmentation(episodes: Sequence[EpisodeView], path: Path, title: str) -
         gridspec_kw={"height_ratios": ratios},
     )
     for column, episode in enumerate(episodes):
-        _draw_episode(axes[:, column], episode)
+        _draw_episode(axes[:, column], episode, codes)
         axes[-1, column].xaxis.set_major_locator(MaxNLocator(integer=True))
-    handles = _legend_handles(episodes)
+    handles = _legend_handles(episodes, labels)
     fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 8), fontsize=8, frameon=False)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0.12 if rows == 1 else 0.08, 1, 1))
