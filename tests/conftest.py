@@ -1,9 +1,11 @@
-"""Session-wide fixtures: a small recorded Craft dataset and an `ocn` checkpoint built on it.
+"""Session-wide fixtures: a small recorded Craft dataset, an `ocn` checkpoint built on it, and a
+`compile` checkpoint trained on it.
 
-The checkpoint is written the way `lerobot-train` writes one (policy config and weights plus the
-pre/post-processor pipelines, all in one `pretrained_model` folder) but without training: tools
-that read a checkpoint need a valid one, not a good one. Tests that need `lerobot-train` itself
-live in test_lerobot_integration.py.
+The `ocn` checkpoint is written the way `lerobot-train` writes one (policy config and weights plus
+the pre/post-processor pipelines, all in one `pretrained_model` folder) but without training: tools
+that read a checkpoint need a valid one, not a good one. Tests that need `lerobot-train` itself for
+OCN live in test_lerobot_integration.py; the `compile` checkpoint comes from a 3-step
+`lerobot-train` run, shared by the compILE tests and compILE's finetuning tests.
 """
 
 from __future__ import annotations
@@ -111,3 +113,11 @@ def ocn_checkpoint(craft_dataset, tmp_path_factory) -> Path:
     preprocessor.save_pretrained(path)
     postprocessor.save_pretrained(path)
     return path
+
+
+@pytest.fixture(scope="session")
+def compile_checkpoint(craft_dataset, tmp_path_factory) -> Path:
+    """3 steps of `lerobot-train --policy.type=compile` (4 concrete latents) on `craft_dataset`."""
+    out = tmp_path_factory.mktemp("compile_train") / "train"
+    flags = ("--policy.hidden_size=16", "--policy.latent_dim=4", "--policy.window_size=24")
+    return train_on_craft("compile", craft_dataset, out, 3, *flags)

@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 import lerobot_policy_ocn  # noqa: F401  (registers `compile` and `craft` as LeRobot's CLIs do)
-from conftest import CRAFT_REPO_ID, craft_rollout, episode_windows, reload_checkpoint, train_on_craft
+from conftest import CRAFT_REPO_ID, craft_rollout, episode_windows, reload_checkpoint
 from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
@@ -28,7 +27,6 @@ torch.set_num_threads(1)
 
 TASKS = ["make plank", "get gold"]
 STATE_DIM = 5
-STEPS = 3
 
 
 def make_policy(action_type: str = "discrete", action_dim: int = 1, **overrides) -> CompILEPolicy:
@@ -179,15 +177,7 @@ def test_continuous_gaussian_latents_and_bad_config():
         CompILEConfig(device="cpu", n_segments=0)
 
 
-# ---- through LeRobot and ocn-eval ----------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def compile_checkpoint(craft_dataset, tmp_path_factory) -> Path:
-    """A few steps of `lerobot-train --policy.type=compile` on the session's Craft dataset."""
-    out = tmp_path_factory.mktemp("compile_train") / "train"
-    flags = ("--policy.hidden_size=16", "--policy.latent_dim=4", "--policy.window_size=24")
-    return train_on_craft("compile", craft_dataset, out, STEPS, *flags)
+# ---- through LeRobot and ocn-eval (the checkpoint: conftest's `compile_checkpoint`) -------------------
 
 
 def test_trained_checkpoint_reloads_and_segments(compile_checkpoint, craft_dataset):

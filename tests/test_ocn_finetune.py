@@ -12,9 +12,9 @@ import torch
 
 from envs.craft.batch import CraftBatch
 from envs.craft.world import parse_task, task_description
+from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_STATE
-from policies.ocn import OCNPolicy
-from tools.episode_parsing import load_ocn
+from tools.episode_parsing import load_ocn, load_policy
 from tools.ocn_finetune import main, merge_option_pools, save_checkpoint
 
 torch.set_num_threads(1)
@@ -23,16 +23,17 @@ ADC = task_description(parse_task("ADC"))
 CAD = task_description(parse_task("CAD"))
 
 
-def variant(path: Path, seed: int, **changes) -> OCNPolicy:
-    """A policy like the checkpoint at `path` with `changes` to its config and fresh weights drawn from `seed`."""
-    source, _, _ = load_ocn(path)
+def variant(path: Path, seed: int, **changes) -> PreTrainedPolicy:
+    """A policy of the type of the checkpoint at `path` (`ocn` or `compile`), like it but with `changes`
+    to its config and fresh weights drawn from `seed`."""
+    source, _, _ = load_policy(path)
     torch.manual_seed(seed)
-    return OCNPolicy(dataclasses.replace(source.config, pretrained_path=None, **changes)).eval()
+    return type(source)(dataclasses.replace(source.config, pretrained_path=None, **changes)).eval()
 
 
 def save_variant(base: Path, path: Path, seed: int, **changes) -> Path:
     """`variant` saved as a checkpoint folder with the base checkpoint's processors."""
-    _, preprocessor, postprocessor = load_ocn(base)
+    _, preprocessor, postprocessor = load_policy(base)
     save_checkpoint(variant(base, seed, **changes), preprocessor, postprocessor, path)
     return path
 
@@ -175,6 +176,14 @@ def test_finetuned_checkpoint_runs_under_lerobot_eval_rollout(finetuned):
     assert policy.config.execution == "hard" and policy.last_step.decided is not None
 
 
+def assert_refused(cases: dict[str, list[str]], capsys: pytest.CaptureFixture) -> None:
+    """Each command line of `cases` exits with code 2 and one line on stderr that holds its key."""
+    for message, argv in cases.items():
+        assert main(argv) == 2, message
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1 and err.startswith("ocn-finetune: "), err
+
+
 def test_bad_input_is_one_line_and_exit_code_2(ocn_checkpoint, tmp_path, capsys):
     incompatible = save_variant(ocn_checkpoint, tmp_path / "small" / "pretrained_model", seed=2, hidden_size=8)
     full = tmp_path / "full"
@@ -192,10 +201,7 @@ def test_bad_input_is_one_line_and_exit_code_2(ocn_checkpoint, tmp_path, capsys)
                                                              "--out", str(tmp_path / "e")],
         "Give either --checkpoint": ["--tasks", "A", "--out", str(tmp_path / "f")],
     }
-    for message, argv in cases.items():
-        assert main(argv) == 2, message
-        err = capsys.readouterr().err.strip()
-        assert message in err and len(err.splitlines()) == 1 and err.startswith("ocn-finetune: "), err
+    assert_refused(cases, capsys)
     assert not any((tmp_path / name).exists() for name in "abcdef")
 
 

@@ -87,3 +87,24 @@ def test_hil_is_cloned_as_hil_and_checked_against_ocn(tmp_path):
     assert not checks["sparse: HIL's mean success below OCN's"]["holds"]
     assert checks["sparse: MoE's mean success below OCN's"]["holds"]
     assert checks["dense: OCN's return at least twice the best baseline's"]["value"] == pytest.approx(0.95 / 0.97)
+
+
+def test_compile_is_cloned_with_its_own_defaults_and_finetuned_over_its_decoders(craft_dataset, tmp_path):
+    import argparse
+
+    from tools.reproduce.finetune import clone_settings
+    from tools.reproduce.runs import train_command
+
+    method = {method.key: method for method in METHODS}["compile"]
+    assert method.name == "compILE" and method.policy_type == "compile"
+    args = argparse.Namespace(steps=2, batch_size=8, window_size=24, num_workers=0, threads=1,
+                              controller_lr_scale=0.1, frames=100, envs=4)
+    settings, overrides = clone_settings(args, SETTINGS["s2"], method)
+    command = train_command(settings, craft_dataset, "local/craft_small", tmp_path / "train", 1, overrides)
+    assert command[1] == "--policy.type=compile" and "--policy.window_size=24" in command
+    ocn_only = ("--policy.n_options", "--policy.temperature", "--policy.controller_lr_scale")
+    assert not any(word.startswith(ocn_only) for word in command)
+    clones = [TrainedRun(tmp_path / name / "pretrained_model", "", None) for name in ("ab", "cd")]
+    command = finetune_command(args, SETTINGS["s2"], method, "sparse", 1, clones, tmp_path / "out")
+    checkpoints = [command[i + 1] for i, word in enumerate(command) if word == "--checkpoint"]
+    assert "--flat" not in command and checkpoints == [str(clone.checkpoint) for clone in clones]

@@ -8,6 +8,16 @@ checkpoint with `execution="hard"`, so `load_ocn` and `lerobot-eval --policy.pat
 run the finetuned hierarchy unchanged. A checkpoint of the MoE or HIL baseline (`hierarchy="moe"` or
 `"hil"`) keeps its hierarchy, so its options keep running for their fixed number of steps.
 
+A `compile` checkpoint gets compILE's RL form (the paper's: decoder frozen, a re-initialised encoder
+predicting the latent, trained by the same PPO). With concrete latents, the frozen decoder given the
+one-hot latent k is a one-step option, so the decoder is a pool of `latent_dim` options
+(`policies.ocn.latent_options`); the fresh controller chooses one at every step (`hierarchy="moe"`,
+temperature 1 unless --temperature says otherwise), exactly as --flat chooses primitive actions.
+The result is an `ocn` checkpoint whose options are that decoder (`decoder_latents` > 0), so
+`lerobot-eval` and the tools run it like any other. Several compile checkpoints (S2) stack their
+decoders into one pool, option d * latent_dim + k being decoder d given latent k. A compILE with
+Gaussian latents has no pool of latents to choose from and is refused.
+
 `--flat` (instead of --checkpoint) trains the flat PPO baseline from scratch, with no demos: a
 policy on primitive actions, built as the same network whose N = 5 options are the five primitive
 actions as frozen one-step options (option a always emits action a) under `hierarchy="moe"`, so the
@@ -36,14 +46,19 @@ from typing import Any
 import torch
 
 from lerobot.configs import NormalizationMode
+from lerobot.policies.pretrained import PreTrainedPolicy
+from policies.compile import CompILEPolicy
 from policies.ocn import OCNConfig, OCNPolicy
+from policies.sequence import SequenceConfig
 
 # Config fields that must agree for options of different checkpoints to share one encoder, one
 # action head and one stacked cell.
 # `hierarchy` and the skill length it fixes too: MoE's and HIL's options were trained to run a fixed
 # number of steps (1 or `skill_length`) and never learned to terminate; the pool keeps that schedule.
+# compILE decoders' latents stack only with decoders of the same latent count and width.
 POOL_FIELDS = ("obs_encoder", "action_type", "n_actions", "hidden_size", "mlp_hidden_size", "mlp_depth",
-               "log_std_min", "log_std_max", "hierarchy", "fixed_skill_length")
+               "log_std_min", "log_std_max", "hierarchy", "fixed_skill_length", "decoder_latents",
+               "decoder_hidden_size")
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -51,7 +66,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
         prog="ocn-finetune", description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     parser.add_argument("--checkpoint", type=Path, action="append", default=[],
-                        help="a pretrained_model folder of an ocn checkpoint; repeat to pool several option sets")
+                        help="a pretrained_model folder of an ocn or compile checkpoint; repeat to pool several "
+                             "option sets")
     parser.add_argument("--flat", action="store_true",
                         help="no checkpoint: flat PPO from scratch over the primitive actions (the baseline)")
     parser.add_argument("--hidden-size", type=int, default=128,
@@ -67,7 +83,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--max-steps", type=int, default=None,
                         help="episode step limit (default: the env's, 100 for tasks of 3+ subtasks)")
     parser.add_argument("--temperature", type=float, default=None,
-                        help="controller softmax temperature T (default: the first checkpoint's)")
+                        help="controller softmax temperature T (default: the first checkpoint's; 1 for --flat "
+                             "and for compile checkpoints)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads; the per-step matmuls are small, and more threads than free "
                              "cores slow them down many times over")
@@ -85,6 +102,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
 def check_poolable(policies: Sequence[OCNPolicy], names: Sequence[str]) -> None:
     """Options can only be pooled if they read the same inputs and write the same action head."""
     first = policies[0].config
+    if len({bool(policy.config.decoder_latents) for policy in policies}) > 1:
+        raise ValueError("Cannot pool OCN options with compILE decoders' latents: finetune each kind on its own.")
     for policy, name in zip(policies[1:], names[1:], strict=True):
         config = policy.config
         for field in POOL_FIELDS:
@@ -103,7 +122,7 @@ def check_craft(policy: OCNPolicy) -> None:
     """The PPO rollouts feed raw Craft states and take raw action indices: identity normalisation only."""
     config = policy.config
     if config.obs_encoder != "craft" or config.action_type != "discrete":
-        raise ValueError("ocn-finetune trains in Craft: it needs an OCN with the craft encoder and discrete actions.")
+        raise ValueError("ocn-finetune trains in Craft: it needs a policy with the craft encoder and discrete actions.")
     if any(mode is not NormalizationMode.IDENTITY for mode in config.normalization_mapping.values()):
         raise ValueError("ocn-finetune needs identity normalisation of Craft states and actions (the craft default).")
 
@@ -166,8 +185,42 @@ def primitive_action_pool(tasks: Sequence[str], hidden_size: int, temperature: f
     return policy.eval()
 
 
-def save_checkpoint(policy: OCNPolicy, preprocessor: Any, postprocessor: Any, path: Path) -> None:
-    """An `ocn` pretrained_model folder: config and weights, and the pre/post-processor pipelines."""
+def compile_latent_options(policy: CompILEPolicy, name: str) -> OCNPolicy:
+    """compILE's RL form: its frozen decoder as an MoE whose `latent_dim` one-step options are the
+    decoder given each one-hot latent (the controller is a placeholder until `merge_option_pools`).
+
+    The shared LeRobot plumbing (features, encoder, action head, normalisation) is the compILE
+    config's; the controller's widths are compILE's `hidden_size`, and its temperature is 1, as flat
+    PPO's is: it picks a one-step behaviour at every step.
+    """
+    config = policy.config
+    if config.latent_type != "concrete":
+        raise ValueError(
+            f"{name} is a compILE with {config.latent_type} latents: its RL form chooses one of the decoder's "
+            "categorical latents at every step, so it needs a compILE trained with --policy.latent_type=concrete."
+        )
+    shared = {field.name: getattr(config, field.name) for field in dataclasses.fields(SequenceConfig)}
+    options = OCNPolicy(OCNConfig(
+        **shared, n_options=config.latent_dim, hidden_size=config.hidden_size, mlp_hidden_size=config.hidden_size,
+        temperature=1.0, hierarchy="moe", decoder_latents=config.latent_dim, decoder_hidden_size=config.hidden_size,
+    ))
+    options.core.options.load_decoder(0, policy.decoder_obs, policy.decoder_latent, policy.decoder_out)
+    return options.eval()
+
+
+def option_source(policy: PreTrainedPolicy, name: str) -> OCNPolicy:
+    """The OCN whose options a checkpoint adds to the pool: an `ocn` checkpoint as it is, a `compile`
+    one as its decoder's latents."""
+    if isinstance(policy, CompILEPolicy):
+        return compile_latent_options(policy, name)
+    if not isinstance(policy, OCNPolicy):
+        raise ValueError(f"{name} holds a `{policy.name}` checkpoint; ocn-finetune pools `ocn` and `compile` ones.")
+    return policy
+
+
+def save_checkpoint(policy: PreTrainedPolicy, preprocessor: Any, postprocessor: Any, path: Path) -> None:
+    """A pretrained_model folder as `lerobot-train` writes one: config and weights, and the pre/post-processor
+    pipelines (`ocn-finetune` writes `ocn` ones)."""
     policy.save_pretrained(path)
     preprocessor.save_pretrained(path)
     postprocessor.save_pretrained(path)
@@ -216,18 +269,19 @@ def _initial_policy(args: argparse.Namespace, tasks: Sequence[str]) -> tuple[OCN
     """The policy PPO starts from, with the processors its checkpoint is saved with: the pooled options
     of --checkpoint under a fresh controller, or with --flat the primitive-action pool."""
     from policies.ocn import make_ocn_pre_post_processors
-    from tools.episode_parsing import load_ocn
+    from tools.episode_parsing import load_policy
 
     if args.flat:
         torch.manual_seed(args.seed)
         policy = primitive_action_pool(tasks, args.hidden_size, args.temperature)
         return (policy, *make_ocn_pre_post_processors(policy.config))
-    loaded = [load_ocn(path) for path in args.checkpoint]
-    for policy, _, _ in loaded:
+    loaded = [load_policy(path) for path in args.checkpoint]
+    names = [str(path) for path in args.checkpoint]
+    sources = [option_source(policy, name) for (policy, _, _), name in zip(loaded, names, strict=True)]
+    for policy in sources:
         check_craft(policy)
     torch.manual_seed(args.seed)
-    policy = merge_option_pools([policy for policy, _, _ in loaded], tasks, args.temperature,
-                                [str(path) for path in args.checkpoint])
+    policy = merge_option_pools(sources, tasks, args.temperature, names)
     return policy, loaded[0][1], loaded[0][2]
 
 
@@ -272,7 +326,12 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     wall = time.perf_counter() - started
     checkpoint = args.out / "pretrained_model"
     save_checkpoint(policy, preprocessor, postprocessor, checkpoint)
-    source = "flat PPO" if args.flat else f"options of {len(args.checkpoint)} checkpoint(s)"
+    if args.flat:
+        source = "flat PPO"
+    elif policy.config.decoder_latents:
+        source = f"latents of {len(args.checkpoint)} compILE decoder(s)"
+    else:
+        source = f"options of {len(args.checkpoint)} checkpoint(s)"
     title = f"ocn-finetune {','.join(labels)} ({args.reward}), {source}, T={policy.config.temperature:g}, seed {args.seed}"
     plot_curve(rows, labels, args.out / "curve.png", title)
     summary = {
@@ -282,6 +341,7 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
         "temperature": policy.config.temperature,
         "tasks": tasks,
         "n_options": policy.config.n_options,
+        "decoder_latents": policy.config.decoder_latents,
         "reward": args.reward,
         "mode": args.mode,
         "envs": args.envs,

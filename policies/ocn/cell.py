@@ -27,6 +27,14 @@ def stacked_uniform(n_modules: int, fan_in: int, *shape: int) -> nn.Parameter:
     return nn.Parameter(torch.empty(n_modules, *shape).uniform_(-bound, bound))
 
 
+def stacked_linear(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+    """One input through N stacked affine maps in one matmul: x [..., B, in], weight [N, in, out],
+    bias [N, 1, out] -> [..., N, B, out]."""
+    n, in_dim, width = weight.shape
+    flat = x.reshape(-1, in_dim) @ weight.transpose(0, 1).reshape(in_dim, n * width)
+    return flat.view(*x.shape[:-1], n, width).movedim(-2, -3) + bias
+
+
 class StackedCell(nn.Module):
     """N independent cells: h^ = MLP([x, h]), out = W_out h^, h = tanh(W_hid h^), e = sigmoid(w_end h^).
 
@@ -67,10 +75,7 @@ class StackedCell(nn.Module):
 
     def project(self, x: Tensor) -> Tensor:
         """Observation part of the first layer, bias included: x [..., B, in] -> [..., N, B, d_mlp]."""
-        n, in_dim, width = self.w_x.shape
-        flat = x.reshape(-1, in_dim) @ self.w_x.transpose(0, 1).reshape(in_dim, n * width)
-        stacked = flat.view(*x.shape[:-1], n, width).movedim(-2, -3)
-        return stacked + self.b_in
+        return stacked_linear(x, self.w_x, self.b_in)
 
     def step(self, x_proj: Tensor, h: Tensor) -> CellOutput:
         """One step from projected observations x_proj [N, B, d_mlp] and states h [N, B, d_hid].

@@ -38,6 +38,12 @@ class OCNConfig(SequenceConfig):
       termination heads are kept but unused. Le et al. train their low level on expert subgoal
       labels; this baseline, as the OCN paper describes it, learns its fixed-length skills from
       the demonstrations alone, without labels. "moe" is the same schedule with L = 1.
+
+    `decoder_latents` > 0 makes the options frozen compILE decoders instead of OCN cells
+    (`latent_options.LatentDecoderPool`): option d * K + k is compILE decoder d given the one-hot
+    latent k, K = `decoder_latents`, each decoder an MLP of width `decoder_hidden_size`. It is how
+    `ocn-finetune` runs compILE's RL form (a fresh controller choosing a latent at every step, so
+    `hierarchy` must be "moe"); nothing trains such a pool by behaviour cloning.
     """
 
     model_name: ClassVar[str] = "OCN"
@@ -66,6 +72,10 @@ class OCNConfig(SequenceConfig):
     # gradient scale away, so this is the way to keep the controller slower under Adam.
     controller_lr_scale: float = 1.0
 
+    # Options that are compILE decoders' latents (0: OCN cells); see the class docstring.
+    decoder_latents: int = 0
+    decoder_hidden_size: int = 128
+
     def __post_init__(self) -> None:
         super().__post_init__()
         check_choice("execution", self.execution, EXECUTIONS)
@@ -78,6 +88,17 @@ class OCNConfig(SequenceConfig):
             raise ValueError(f"controller_lr_scale must be > 0, got {self.controller_lr_scale}.")
         if self.temperature <= 0:
             raise ValueError(f"temperature must be > 0, got {self.temperature}.")
+        if self.decoder_latents < 0 or self.decoder_hidden_size < 1:
+            raise ValueError(
+                f"decoder_latents must be >= 0 and decoder_hidden_size >= 1, got {self.decoder_latents} "
+                f"and {self.decoder_hidden_size}."
+            )
+        if self.decoder_latents and (self.n_options % self.decoder_latents or self.hierarchy != "moe"):
+            raise ValueError(
+                f"Options that are compILE decoders' latents last one step and come {self.decoder_latents} per "
+                f"decoder: they need hierarchy='moe' and n_options a multiple of decoder_latents, got "
+                f"{self.hierarchy!r} and {self.n_options}."
+            )
 
     @property
     def fixed_skill_length(self) -> int | None:

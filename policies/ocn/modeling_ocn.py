@@ -18,6 +18,7 @@ from policies.sequence import SequencePolicy, frame_mask, training_windows, wind
 from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
 from .heads import make_action_head, mixture_log_prob
+from .latent_options import LatentDecoderPool
 from .recurrence import HardState, OCNCore, OCNState, StepOutput
 
 
@@ -56,8 +57,21 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             n_params=self.head.n_params,
             temperature=config.temperature,
             skill_length=config.fixed_skill_length,
+            options=self._latent_options() if config.decoder_latents else None,
         )
         self.reset()
+
+    def _latent_options(self) -> LatentDecoderPool:
+        """The frozen compILE decoders that `decoder_latents` > 0 puts in place of the option cells."""
+        config = self.config
+        return LatentDecoderPool(
+            n_decoders=config.n_options // config.decoder_latents,
+            latent_dim=config.decoder_latents,
+            in_dim=self.encoder.out_dim,
+            width=config.decoder_hidden_size,
+            n_out=self.head.n_params,
+            hidden_size=config.hidden_size,
+        )
 
     def get_optim_params(self) -> list[dict[str, Any]]:
         """Two parameter groups: the controller (with its per-task initial states) and the rest."""

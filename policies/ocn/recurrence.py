@@ -86,7 +86,9 @@ class OCNCore(nn.Module):
     """Shared controller (N = 1 cell over options), N option cells, and the learned initial states.
 
     `skill_length` L fixes how long every option runs (see `schedule`): 1 for the MoE baseline, where
-    every step is then a start, L for HIL; None (OCN) leaves termination to the options.
+    every step is then a start, L for HIL; None (OCN) leaves termination to the options. `options`
+    replaces the option cells by another pool with their interface (`n_modules`, `project`, `step`),
+    such as the frozen compILE decoders of `latent_options`.
     """
 
     def __init__(
@@ -100,17 +102,20 @@ class OCNCore(nn.Module):
         n_params: int,
         temperature: float,
         skill_length: int | None = None,
+        options: nn.Module | None = None,
     ) -> None:
         super().__init__()
         if skill_length is not None and skill_length < 1:
             raise ValueError(f"skill_length must be >= 1 or None, got {skill_length}.")
+        if options is not None and options.n_modules != n_options:
+            raise ValueError(f"The option pool holds {options.n_modules} options, not n_options = {n_options}.")
         self.n_options = n_options
         self.temperature = temperature
         self.skill_length = skill_length
         self.controller = StackedCell(
             1, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_options, with_end=False
         )
-        self.options = StackedCell(
+        self.options = options if options is not None else StackedCell(
             n_options, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_params
         )
         self.controller_init = nn.Parameter(torch.zeros(n_tasks, hidden_size))

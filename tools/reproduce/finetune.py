@@ -1,8 +1,10 @@
 """`ocn-reproduce s1` and `ocn-reproduce s2`: reusing skills with PPO (paper section 4.1, figures 4-5).
 
-S1: OCN, MoE and HIL are cloned from the S1 demonstrations ({AC, CD, DA}); their options are frozen
-and a fresh controller is trained by PPO on ADC, CAD and DCA. S2: one model is cloned from {AB, BA} and
-one from {CD, DC}; their option pools are merged and the controller learns BADC, ACBD and CABD.
+S1: OCN, MoE, HIL and compILE are cloned from the S1 demonstrations ({AC, CD, DA}); their options
+are frozen and a fresh controller is trained by PPO on ADC, CAD and DCA. S2: one model is cloned from
+{AB, BA} and one from {CD, DC}; their option pools are merged and the controller learns BADC, ACBD and
+CABD. compILE's options are its frozen decoder given each of its categorical latents (its RL form,
+see `ocn-finetune`), so S2 merges the two decoders' latent pools as it merges OCN's options.
 Flat PPO learns each setting from scratch on the primitive actions, as the reference that shows
 why skills matter. Every method gets the same env-frame budget, each reward (sparse, dense) and
 each seed; the learning curves and the issue's checks go to `results/finetune_{s1,s2}.{json,md,png}`,
@@ -19,7 +21,7 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +30,7 @@ import numpy as np
 from tools import console_script
 from tools.bench import RESULTS, machine
 from tools.reproduce import imitation
-from tools.reproduce.runs import TrainedRun, record_dataset, train_policy
+from tools.reproduce.runs import TrainedRun, TrainSettings, record_dataset, train_policy
 
 GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
 FINAL_ROWS = 3  # PPO iterations averaged for the value "at the budget" (one iteration is noisy)
@@ -46,11 +48,13 @@ class Setting:
 
 @dataclass(frozen=True)
 class Method:
-    """How a method gets its skills: cloned with these `--policy.*` overrides, or none (flat)."""
+    """How a method gets its skills: cloned as `--policy.type=policy_type` with these `--policy.*`
+    overrides, or none (flat)."""
 
     key: str
     name: str
     overrides: dict[str, Any] | None
+    policy_type: str = "ocn"
 
 
 SETTINGS = {
@@ -61,10 +65,24 @@ METHODS = (
     Method("ocn", "OCN", {}),
     Method("moe", "MoE", {"hierarchy": "moe"}),
     Method("hil", "HIL", {"hierarchy": "hil"}),
+    Method("compile", "compILE", {}, "compile"),
     Method("flat", "flat PPO", None),
 )
 REWARDS = ("sparse", "dense")
 BASELINES = tuple(method.name for method in METHODS if method.key != "ocn")
+
+
+def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -> tuple[TrainSettings, dict[str, Any]]:
+    """The `lerobot-train` settings and `--policy.*` overrides of the method's clones.
+
+    The OCN family gets the setting's number of options and T = 10; compILE trains with its own
+    defaults (`CompILEConfig`: 4 segments, 32 categorical latents, lr 1e-4) on the same data, steps,
+    batch and windows, without OCN's controller learning-rate scale, which it has no use for.
+    """
+    settings = imitation.train_settings(args)
+    if method.policy_type != "ocn":
+        return replace(settings, policy={}, policy_type=method.policy_type), dict(method.overrides or {})
+    return settings, {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {})}
 
 
 def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
@@ -72,16 +90,16 @@ def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int)
 
     S1's OCN is the imitation study's main variant, so both reproductions share those runs.
     """
+    settings, overrides = clone_settings(args, setting, method)
     runs = []
     for folder, tasks in setting.demos:
         data = args.workdir / folder
         record_dataset(data, tasks, f"local/{folder}", args.episodes_per_task, args.data_seed)
-        overrides = {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {})}
         if setting.name == "s1" and method.name == "OCN":
             run_dir = imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed)
         else:
             run_dir = args.workdir / "clone" / folder / method.key / f"seed{seed}"
-        runs.append(train_policy(imitation.train_settings(args), data, f"local/{folder}", run_dir, seed, overrides))
+        runs.append(train_policy(settings, data, f"local/{folder}", run_dir, seed, overrides))
     return runs
 
 
@@ -231,7 +249,8 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
         f"{result['date']}. Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
-        f"{setting.n_options} options per cloned model, cloned by `lerobot-train`; PPO through `ocn-finetune`, "
+        f"{setting.n_options} options per cloned model (compILE: one per latent category of its decoder), cloned by "
+        f"`lerobot-train`; PPO through `ocn-finetune`, "
         f"{result['settings']['frames']} env frames per run, {result['settings']['envs']} envs. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
         f"seeds. Runs finished: {result['runs_finished']} of {result['runs_planned']}; wall time of this "

@@ -31,7 +31,8 @@ def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int,
 
 @dataclass
 class TrainSettings:
-    """How every `lerobot-train` run of a study trains; `policy` holds extra `--policy.*` values."""
+    """How every `lerobot-train` run of a study trains; `policy` holds extra `--policy.*` values for
+    the policy type `policy_type`."""
 
     steps: int
     batch_size: int
@@ -39,6 +40,7 @@ class TrainSettings:
     num_workers: int = 2
     threads: int = 1
     policy: dict[str, Any] = field(default_factory=dict)
+    policy_type: str = "ocn"
 
 
 @dataclass
@@ -54,12 +56,13 @@ class TrainedRun:
 def train_command(
     settings: TrainSettings, data: Path, repo_id: str, out: Path, seed: int, overrides: dict[str, Any]
 ) -> list[str]:
-    """The `lerobot-train` call of one OCN run on the dataset's train split."""
+    """The `lerobot-train` call of one run on the dataset's train split."""
     from ocn_data.episodes_table import split_episodes
 
     train = split_episodes(data, "train")
     command = [
-        console_script("lerobot-train"), "--policy.type=ocn", f"--dataset.repo_id={repo_id}", f"--dataset.root={data}",
+        console_script("lerobot-train"), f"--policy.type={settings.policy_type}", f"--dataset.repo_id={repo_id}",
+        f"--dataset.root={data}",
         f"--dataset.episodes=[{','.join(map(str, train))}]", "--policy.device=cpu", "--policy.push_to_hub=false",
         "--wandb.enable=false", "--env_eval_freq=0", f"--steps={settings.steps}", f"--batch_size={settings.batch_size}",
         f"--num_workers={settings.num_workers}", f"--save_freq={min(settings.steps, SAVE_EVERY)}", "--log_freq=50",
