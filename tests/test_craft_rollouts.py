@@ -4,7 +4,7 @@ import numpy as np
 import torch
 
 from envs.craft.batch import CraftBatch
-from envs.craft.world import USE
+from envs.craft.world import USE, default_max_steps
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy
@@ -17,12 +17,12 @@ def identity(x):
     return x
 
 
-def make_policy() -> OCNPolicy:
+def make_policy(**overrides) -> OCNPolicy:
     torch.manual_seed(0)
     config = OCNConfig(
         device="cpu", hidden_size=8, mlp_hidden_size=8, n_options=2, tasks=[TASK], inference_mode="greedy",
         input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))},
-        output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))},
+        output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))}, **overrides,
     )
     return OCNPolicy(config)
 
@@ -61,3 +61,20 @@ def test_an_option_that_never_ends_runs_to_the_step_limit():
     table = option_subtask_success(policy, identity, identity, ["A"], episodes=8)
     assert np.array_equal(table, np.zeros((2, 1)))
     assert free_run_success(policy, identity, identity, [TASK], episodes=8) == {TASK: 0.0}
+
+
+def test_fixed_length_options_run_on_and_restart_every_skill_length():
+    policy = make_policy(hierarchy="hil", skill_length=3)
+    set_option_behaviour(policy, action=0, end_logit=50.0)  # a head that would stop an OCN option at once
+    restarts = []
+    act = policy.act_with_options
+
+    def recording_act(state, option, option_h, restart, greedy):
+        restarts.append(restart.tolist())
+        return act(state, option, option_h, restart, greedy)
+
+    policy.act_with_options = recording_act
+    table = option_subtask_success(policy, identity, identity, ["A"], episodes=2)
+    assert np.array_equal(table, np.zeros((2, 1)))  # "down" forever completes nothing
+    assert len(restarts) == default_max_steps(1)  # the termination head never cut a run short
+    assert restarts == [[t % 3 == 0] * 4 for t in range(len(restarts))]

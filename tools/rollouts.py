@@ -122,8 +122,13 @@ def option_subtask_success(
 ) -> np.ndarray:
     """Paper table 1: [n_options, len(subtasks)] fraction of fresh episodes of the one-subtask task
     `subtasks[j]` that option i, run alone from its initial state, completes before its termination
-    fires (e > 0.5) or the env's step limit."""
+    fires (e > 0.5) or the env's step limit.
+
+    Options of a fixed length L (MoE: 1, HIL: L) have no termination of their own (their heads are
+    untrained): option i then runs on, restarting from its initial state every L steps, which is
+    what it does when the controller picks it at every decision."""
     greedy = policy.config.inference_mode == "greedy"
+    length = policy.config.fixed_skill_length
     n_options = policy.config.n_options
     pairs = [(i, subtask) for i in range(n_options) for subtask in subtasks]
     rows, seeds = _episodes_of(pairs, episodes, seed)
@@ -131,14 +136,14 @@ def option_subtask_success(
     batch, obs = world.start([subtask for _, subtask in rows], seeds)
     option = torch.tensor([i for i, _ in rows], dtype=torch.long)
     stopped = np.zeros(len(rows), dtype=bool)
-    option_h, first = None, True
+    option_h, step = None, 0
     while not (batch.done | stopped).all():
         state = _observation(obs, named, preprocessor)[OBS_STATE]
-        restart = torch.full((len(rows),), first)
+        restart = torch.full((len(rows),), step == 0 if length is None else step % length == 0)
         action, option_h, end = policy.act_with_options(state, option, option_h, restart, greedy)
-        if not first:
+        if length is None and step > 0:
             stopped |= (end.cpu().numpy() > 0.5) & ~batch.done
-        first = False
+        step += 1
         obs, _ = _step(world, batch, postprocessor(action))
     completed = (batch.progress == 1) & ~stopped
     return completed.reshape(n_options, len(subtasks), episodes).mean(axis=2)
