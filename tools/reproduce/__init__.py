@@ -2,8 +2,9 @@
 
 Each experiment is a subcommand in its own module: `imitation-s1` (skill induction and its
 ablations, `imitation.py`), `s1` and `s2` (finetuning over frozen skills against MoE, HIL and flat
-PPO, `finetune.py`). What they share (recording, resumable `lerobot-train` runs) is in
-`runs.py`.
+PPO, `finetune.py`), `parsing-s1` (how OCN and the baselines parse S1 over training, `parsing.py`).
+What they share is in `runs.py` (recording, resumable `lerobot-train` runs) and `report.py` (the
+results files' provenance and checks table).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tools.reproduce import finetune, imitation
+from tools.reproduce import finetune, imitation, parsing
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -19,6 +20,7 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="experiment", required=True)
     imitation.add_parser(sub)
     finetune.add_parsers(sub)
+    parsing.add_parser(sub)
     args = parser.parse_args(argv)
     args.argv = argv
     return args.func(args)

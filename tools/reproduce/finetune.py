@@ -19,7 +19,6 @@ import csv
 import json
 import shutil
 import subprocess
-import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -28,8 +27,9 @@ from typing import Any
 import numpy as np
 
 from tools import console_script
-from tools.bench import RESULTS, machine
+from tools.bench import RESULTS
 from tools.reproduce import imitation
+from tools.reproduce.report import checks_table, provenance
 from tools.reproduce.runs import TrainedRun, TrainSettings, record_dataset, train_policy
 
 GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
@@ -258,13 +258,13 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         "## Checks",
         "",
-        "| check | measured | holds |",
-        "|---|---|---|",
+        *checks_table(result["must_show"]),
+        "",
+        "## At the budget",
+        "",
+        "| method | reward | seeds | mean return | success | " + " | ".join(labels) + " | PPO frames/s |",
+        "|---|---|---|---|---|" + "---|" * len(labels) + "---|",
     ]
-    lines += [f"| {c['check']} | {c['value']:.3f} | {'yes' if c['holds'] else 'NO'} |" for c in result["must_show"]]
-    lines += ["", "## At the budget", "",
-              "| method | reward | seeds | mean return | success | " + " | ".join(labels) + " | PPO frames/s |",
-              "|---|---|---|---|---|" + "---|" * len(labels) + "---|"]
     for row in result["summary"].values():
         b = row["at_budget"]
 
@@ -283,11 +283,8 @@ def write_results(args: argparse.Namespace, setting: Setting, runs: list[dict[st
     """`results/finetune_<setting>.{json,md,png}` from the runs finished so far."""
     summary = summarise(runs, task_labels(setting))
     result = {
-        "command": "ocn-reproduce " + " ".join(sys.argv[1:] if args.argv is None else args.argv),
+        **provenance(args),
         "setting": setting.name,
-        "date": time.strftime("%Y-%m-%d"),
-        "machine": machine(),
-        "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k not in ("func", "argv")},
         "runs_finished": len(runs),
         "runs_planned": planned,
         "summary": summary,

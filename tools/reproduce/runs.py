@@ -14,7 +14,7 @@ from typing import Any
 
 from tools import console_script
 
-SAVE_EVERY = 1000  # lerobot-train checkpoints this often, so a stopped run resumes from its last one
+SAVE_EVERY = 1000  # lerobot-train checkpoints this often by default, so a stopped run resumes from its last one
 
 
 def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int, seed: int) -> None:
@@ -32,7 +32,8 @@ def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int,
 @dataclass
 class TrainSettings:
     """How every `lerobot-train` run of a study trains; `policy` holds extra `--policy.*` values for
-    the policy type `policy_type`."""
+    the policy type `policy_type`; `save_every` is the checkpoint interval (a study that scores the
+    model over training keeps checkpoints more often)."""
 
     steps: int
     batch_size: int
@@ -41,6 +42,7 @@ class TrainSettings:
     threads: int = 1
     policy: dict[str, Any] = field(default_factory=dict)
     policy_type: str = "ocn"
+    save_every: int = SAVE_EVERY
 
 
 @dataclass
@@ -65,7 +67,8 @@ def train_command(
         f"--dataset.root={data}",
         f"--dataset.episodes=[{','.join(map(str, train))}]", "--policy.device=cpu", "--policy.push_to_hub=false",
         "--wandb.enable=false", "--env_eval_freq=0", f"--steps={settings.steps}", f"--batch_size={settings.batch_size}",
-        f"--num_workers={settings.num_workers}", f"--save_freq={min(settings.steps, SAVE_EVERY)}", "--log_freq=50",
+        f"--num_workers={settings.num_workers}", f"--save_freq={min(settings.steps, settings.save_every)}",
+        "--log_freq=50",
         f"--seed={seed}", f"--policy.window_size={settings.window_size}", f"--output_dir={out}",
     ]
     return command + [f"--policy.{key}={value}" for key, value in {**settings.policy, **overrides}.items()]
