@@ -155,7 +155,7 @@ def record(args: argparse.Namespace) -> int:
     mcap = DemoMcapWriter(args.mcap, fps, features["observation.state"]["names"]) if args.mcap else None
     start_episodes = writer.total_episodes
     session = {
-        "command": shlex.join(["record_demos", *sys.argv[1:]]),
+        "command": shlex.join(["record_demos", *args.argv]),
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "env": args.env,
         "seed": args.seed,
@@ -205,6 +205,7 @@ def record(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = sys.argv[1:] if argv is None else list(argv)  # the session's command, in-process calls too
     try:
         return record(args)
     except (ValueError, FileExistsError, FileNotFoundError, DatasetExistsError) as err:

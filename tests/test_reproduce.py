@@ -1,10 +1,11 @@
-"""ocn-reproduce reuses a finished run only when it was trained by the same settings."""
+"""ocn-reproduce reuses a finished run, or a recorded dataset, only when the same settings made it."""
 
 import json
 
 import pytest
 
-from tools.reproduce.runs import check_reusable
+from ocn_data.record_demos import main as record_demos
+from tools.reproduce.runs import check_recorded_as, check_reusable, record_dataset
 
 COMMAND = "/venv/bin/lerobot-train --policy.type=ocn --dataset.root={root} --steps={steps} --output_dir={root}/out"
 
@@ -43,3 +44,28 @@ def test_reuse_ignores_argument_order(tmp_path):
     check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=5000) + " --seed=1 --policy.n_options=3")
     with pytest.raises(SystemExit):
         check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=5000) + " --seed=2 --policy.n_options=3")
+
+
+def _recording(root, seed=0):
+    return ["--env", "craft", "--tasks", "AC", "--episodes-per-task", "2", "--root", str(root), "--repo-id",
+            "local/tiny", "--seed", str(seed)]
+
+
+def test_a_dataset_is_reused_only_when_recorded_with_the_same_settings(tmp_path, capsys):
+    data = tmp_path / "data"
+    assert record_demos(_recording(data)) == 0
+    record_dataset(data, "AC", "local/tiny", 2, 0)
+    assert f"reusing the dataset in {data}" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="recorded by: record_demos .*--seed 0"):
+        record_dataset(data, "AC", "local/tiny", 2, 1)
+    with pytest.raises(SystemExit, match="--episodes-per-task 3"):
+        record_dataset(data, "AC", "local/tiny", 3, 0)
+
+
+def test_a_moved_dataset_is_still_reused_but_one_of_unknown_origin_is_not(tmp_path):
+    assert record_demos(_recording(tmp_path / "old")) == 0
+    (tmp_path / "old").rename(tmp_path / "new")
+    check_recorded_as(tmp_path / "new", _recording(tmp_path / "new"))
+    (tmp_path / "new" / "meta" / "ocn_recording.json").unlink()
+    with pytest.raises(SystemExit, match="no record_demos session"):
+        check_recorded_as(tmp_path / "new", _recording(tmp_path / "new"))

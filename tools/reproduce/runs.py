@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import time
@@ -18,15 +19,41 @@ SAVE_EVERY = 1000  # lerobot-train checkpoints this often by default, so a stopp
 
 
 def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int, seed: int) -> None:
-    """Record Craft demonstrations of `tasks` (comma-separated) unless `root` holds a finished dataset."""
+    """Record Craft demonstrations of `tasks` (comma-separated) unless `root` already holds exactly
+    that dataset; a dataset recorded with other settings is refused (`check_recorded_as`)."""
+    arguments = ["--env", "craft", "--tasks", tasks, "--episodes-per-task", str(episodes_per_task),
+                 "--root", str(root), "--repo-id", repo_id, "--seed", str(seed)]
     if (root / "meta" / "info.json").exists():
+        check_recorded_as(root, arguments)
         print(f"reusing the dataset in {root}", flush=True)
         return
-    subprocess.run(
-        [console_script("record_demos"), "--env", "craft", "--tasks", tasks, "--episodes-per-task", str(episodes_per_task),
-         "--root", str(root), "--repo-id", repo_id, "--seed", str(seed)],
-        check=True,
+    subprocess.run([console_script("record_demos"), *arguments], check=True)
+
+
+def check_recorded_as(root: Path, arguments: list[str]) -> None:
+    """Refuse to reuse a dataset unless one finished `record_demos` session with these arguments
+    wrote it (its --root aside, so that a moved workdir still counts): a changed --data-seed or
+    --episodes-per-task must not silently train on the old data."""
+    from ocn_data.provenance import load_provenance
+
+    sessions = load_provenance(root)["sessions"]
+    recorded = [_recording_settings(shlex.split(session["command"])[1:]) for session in sessions]
+    if recorded == [_recording_settings(arguments)] and not sessions[0]["interrupted"]:
+        return
+    found = "; ".join(session["command"] for session in sessions) or "no record_demos session"
+    raise SystemExit(
+        f"{root} holds a dataset recorded by: {found}\nwhile this reproduction records:\n  "
+        f"{shlex.join(['record_demos', *arguments])}\nMove that folder away or pass another --workdir."
     )
+
+
+def _recording_settings(arguments: list[str]) -> list[str]:
+    """A record_demos argument list without its --root value."""
+    settings = list(arguments)
+    if "--root" in settings:
+        at = settings.index("--root")
+        del settings[at : at + 2]
+    return settings
 
 
 @dataclass
