@@ -27,6 +27,14 @@ from ocn_data.record_demos import main as record_demos
 CRAFT_REPO_ID = "local/craft_small"
 
 
+def run_cli(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """One of the environment's console scripts as a subprocess; a failure shows its stderr's tail."""
+    proc = subprocess.run([str(Path(sys.executable).parent / name), *args], capture_output=True, text=True,
+                          timeout=300, cwd=cwd)
+    assert proc.returncode == 0, f"{name} failed ({proc.returncode}):\n{proc.stderr[-4000:]}"
+    return proc
+
+
 def train_on_craft(policy_type: str, root: Path, out: Path, steps: int, *flags: str) -> Path:
     """`lerobot-train --policy.type=POLICY_TYPE` for a few steps of batch 4 on the Craft dataset at
     `root` (plus the policy's own `flags`); returns the final checkpoint's pretrained_model folder."""

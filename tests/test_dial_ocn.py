@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -39,19 +37,13 @@ from tools import ocn_eval, ocn_view
 from tools.episode_parsing import load_ocn, parse_episodes
 from tools.parsing_metrics import boundaries_from_labels
 from tools.view_scenes import DialScene
+from conftest import run_cli
 
-BIN = Path(sys.executable).parent
 REPO_ID = "local/dial_ocn_test"
 STEPS = 3
 # Recorded episodes are about 40-140 frames long: windows of 64 make some of them "long episodes".
 WINDOW = 64
 DIAL = {"obs_encoder": "identity", "action_type": "continuous", "hidden_size": 16, "mlp_hidden_size": 16}
-
-
-def run_cli(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
-    proc = subprocess.run([str(BIN / name), *args], capture_output=True, text=True, timeout=300, cwd=cwd)
-    assert proc.returncode == 0, f"{name} failed ({proc.returncode}):\n{proc.stderr[-4000:]}"
-    return proc
 
 
 @pytest.fixture(scope="module")

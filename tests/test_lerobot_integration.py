@@ -30,17 +30,12 @@ from envs.craft.lerobot_config import CraftEnvConfig
 from envs.craft.lerobot_env import action_index
 from ocn_data.record_demos import main as record_demos
 from policies.ocn import OCNPolicy
+from conftest import run_cli
 
 BIN = Path(sys.executable).parent
 REPO_ID = "local/ocn_it"
 STEPS = 4
 AC = task_description(parse_task("AC"))  # "get wood, get iron"
-
-
-def run_cli(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
-    proc = subprocess.run([str(BIN / name), *args], capture_output=True, text=True, timeout=300, cwd=cwd)
-    assert proc.returncode == 0, f"{name} failed ({proc.returncode}):\n{proc.stderr[-4000:]}"
-    return proc
 
 
 def identity(x):

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import subprocess
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,8 +19,9 @@ from typing import Any
 import numpy as np
 
 from tools import console_script
-from tools.bench import RESULTS, machine
+from tools.bench import RESULTS
 
+from tools.reproduce.report import checks_table, provenance
 from tools.reproduce.runs import TrainSettings, record_dataset, train_policy
 
 S1_TASKS = "AC,CD,DA"
@@ -178,10 +178,8 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         "## Must-show checks",
         "",
-        "| check | measured | holds |",
-        "|---|---|---|",
+        *checks_table(result["must_show"]),
     ]
-    lines += [f"| {c['check']} | {c['value']:.3f} | {'yes' if c['holds'] else 'NO'} |" for c in result["must_show"]]
     lines += ["", "## Mean (std) over seeds", "", "| variant | seeds | " + " | ".join(METRICS) + " |",
               "|---|---|" + "---|" * len(METRICS)]
     for name, row in result["summary"].items():
@@ -224,10 +222,7 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
     """`results/imitation_s1.{json,md,png}` (and the option table) from the runs finished so far."""
     summary = summarise(records)
     result = {
-        "command": "ocn-reproduce " + " ".join(sys.argv[1:] if args.argv is None else args.argv),
-        "date": time.strftime("%Y-%m-%d"),
-        "machine": machine(),
-        "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k not in ("func", "argv")},
+        **provenance(args),
         "runs_finished": len(records),
         "runs_planned": planned,
         "summary": summary,
@@ -266,6 +261,8 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
                         help="controller learning rate / the options' (see OCNConfig.controller_lr_scale)")
     parser.add_argument("--num-workers", type=int, default=2, help="lerobot-train data workers")
     parser.add_argument("--threads", type=int, default=1, help="math threads of each process")
-    parser.add_argument("--episodes-per-task", type=int, default=6000)
-    parser.add_argument("--data-seed", type=int, default=0)
-    parser.add_argument("--workdir", type=Path, default=Path("outputs/reproduce"))
+    parser.add_argument("--episodes-per-task", type=int, default=6000,
+                        help="demonstrations recorded per task (the paper's 6000; 80/20 train/val split)")
+    parser.add_argument("--data-seed", type=int, default=0, help="record_demos seed of the demonstrations")
+    parser.add_argument("--workdir", type=Path, default=Path("outputs/reproduce"),
+                        help="where datasets and runs live; finished runs and datasets there are reused")
