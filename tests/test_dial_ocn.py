@@ -2,7 +2,7 @@
 torques out of the postprocessor, `lerobot-train --policy.type=ocn` and `lerobot-eval
 --env.type=dial` as real subprocesses, the Dial rollouts of `tools.dial_rollouts`, and `ocn-eval` and
 `ocn-view` on a Dial dataset (ground-truth boundaries at the key presses, the JSON, the MCAP log of
-the free runs, the .rrd read back).
+the free runs, the .rrd read back), and `ocn-annotate`'s copy of it read back by LeRobot.
 
 One tiny recorded dataset (PINs 12 and 21) and one tiny training run are shared by the module.
 """
@@ -33,7 +33,7 @@ from policies.ocn.processor_ocn import make_ocn_pre_post_processors
 from policies.sequence import training_windows
 from tools.dial_rollouts import free_run_success, option_subtask_success
 from rrd_reading import forward_fill, read_rrd, values
-from tools import ocn_eval, ocn_view
+from tools import ocn_annotate, ocn_eval, ocn_view
 from tools.episode_parsing import load_ocn, parse_episodes
 from tools.parsing_metrics import boundaries_from_labels
 from tools.view_scenes import DialScene
@@ -285,6 +285,36 @@ def test_ocn_view_on_dial(trained, dial_dataset, tmp_path):
     assert png.read_bytes()[:4] == b"\x89PNG"
 
 
+def test_ocn_annotate_on_dial(trained, dial_dataset, tmp_path):
+    out, annotated_id = tmp_path / "annotated", f"{REPO_ID}_ocn"
+    args = ["--policy", str(trained), "--root", str(dial_dataset), "--repo-id", annotated_id, "--out-root", str(out),
+            "--name-by", "subtask"]
+    assert ocn_annotate.main(args) == 0
+    episodes = load_episodes(dial_dataset, split_episodes(dial_dataset, "all"))
+    policy, preprocessor, _ = load_ocn(trained)
+    parses = parse_episodes(policy, preprocessor, episodes)
+    option = np.concatenate([parse.option for parse in parses])
+    subtask = np.concatenate([episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)])
+    name = {int(k): f"press {np.bincount(subtask[option == k]).argmax()}" for k in np.unique(option)}
+    annotation = json.loads((out / "meta" / "ocn_annotation.json").read_text())
+    assert {o["option"]: o["name"] for o in annotation["options"]} == name  # named by the digit it overlaps most
+
+    ds = LeRobotDataset(annotated_id, root=out)
+    assert ds.meta.has_language_columns and ds.num_episodes == len(parses)
+    for e, parse in zip(episodes.episode_index, parses, strict=True):
+        starts = [0, *np.flatnonzero(parse.option[1:] != parse.option[:-1]) + 1]
+        expected = [(int(s), name[int(parse.option[s])]) for s in starts]
+        span = ds.meta.episodes[int(e)]
+        for index in (span["dataset_from_index"], span["dataset_to_index"] - 1):
+            item = ds[index]
+            assert item["language_events"] == []
+            rows = item["language_persistent"]
+            assert all(r["role"] == "assistant" and r["style"] == "subtask" for r in rows)
+            assert [(round(r["timestamp"] * ds.fps), r["content"]) for r in rows] == expected
+    card = (out / "README.md").read_text()
+    assert f"# {annotated_id}: Dial demonstrations" in card and "## OCN subtask annotations" in card
+
+
 def test_the_dial_scene_places_the_fingertip_where_the_env_has_it():
     batch = DialBatch(3)
     obs = batch.reset(seeds=[0, 1, 2], tasks=["12", "48", "81"])
@@ -301,7 +331,10 @@ def test_a_dataset_of_another_world_is_one_clear_error(trained, dial_dataset, tm
     eval_args = ["--policy", str(trained), "--root", str(root), "--repo-id", REPO_ID, "--out", str(tmp_path / "x.json")]
     assert ocn_eval.main(eval_args) == 2
     assert ocn_view.main(["--root", str(root), "--repo-id", REPO_ID, "--save", str(tmp_path / "x.rrd")]) == 2
+    annotate_args = ["--policy", str(trained), "--root", str(root), "--repo-id", REPO_ID,
+                     "--out-root", str(tmp_path / "x")]
+    assert ocn_annotate.main(annotate_args) == 2
     errors = capsys.readouterr().err.strip().splitlines()
-    assert [line.split(":")[0] for line in errors] == ["ocn-eval", "ocn-view"]
+    assert [line.split(":")[0] for line in errors] == ["ocn-eval", "ocn-view", "ocn-annotate"]
     assert all("robot_type 'koch'" in line and "craft, dial" in line for line in errors)
-    assert not (tmp_path / "x.json").exists() and not (tmp_path / "x.rrd").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith("x")]

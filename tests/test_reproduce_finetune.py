@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from tools.reproduce.finetune import METHODS, SETTINGS, finetune_command, must_show
+from tools.reproduce.finetune import METHODS, SETTINGS, finetune_command, markdown, must_show, task_labels
 from tools.reproduce.runs import TrainedRun
 
 TINY = ["--seeds", "1", "--steps", "2", "--batch-size", "8", "--num-workers", "0", "--episodes-per-task", "12",
@@ -108,3 +108,21 @@ def test_compile_is_cloned_with_its_own_defaults_and_finetuned_over_its_decoders
     command = finetune_command(args, SETTINGS["s2"], method, "sparse", 1, clones, tmp_path / "out")
     checkpoints = [command[i + 1] for i, word in enumerate(command) if word == "--checkpoint"]
     assert "--flat" not in command and checkpoints == [str(clone.checkpoint) for clone in clones]
+
+
+def test_results_header_notes_compiles_options_only_when_compile_ran():
+    setting = SETTINGS["s1"]
+    stat = {"mean": 0.5, "std": 0.0}
+    at_budget = {key: stat for key in ("mean_return", "success", *(f"success[{t}]" for t in task_labels(setting)))}
+
+    def header(methods: list[str]) -> str:
+        summary = {f"{name} | sparse": {"method": name, "reward": "sparse", "seeds": [1], "at_budget": at_budget,
+                                        "frames_per_s": 100.0} for name in methods}
+        result = {"setting": setting.name, "command": "ocn-reproduce s1", "date": "2025-01-01",
+                  "machine": {"cpu": "cpu", "cores": 2}, "settings": {"frames": 100, "envs": 4}, "runs_finished": 2,
+                  "runs_planned": 2, "wall_s": 60.0, "summary": summary, "must_show": []}
+        return markdown(result).split("## Checks")[0]
+
+    note = "3 options per cloned model (compILE: one per latent category of its decoder), cloned by"
+    assert note in header(["OCN", "compILE"])
+    assert "3 options per cloned model, cloned by" in header(["OCN", "MoE"]) and "compILE" not in header(["OCN", "MoE"])

@@ -4,8 +4,9 @@ The policy parses every episode (the chosen option, argmax p^c, per step); each 
 same option becomes one LeRobot subtask annotation, in the native `language_persistent` column
 (role "assistant", style "subtask", the segment's name, its start time), with an empty
 `language_events` list per frame. Segments are named "option k", or with `--name-by subtask` by the
-ground-truth subtask that the option overlaps most over the whole dataset. The input dataset is
-never modified: the annotated dataset is a new copy with its own card and `meta/ocn_annotation.json`.
+ground-truth subtask that the option overlaps most over the whole dataset. Craft and Dial datasets
+alike: the world comes from the dataset (`tools.worlds`), which names its subtasks. The input dataset
+is never modified: the annotated dataset is a new copy with its own card and `meta/ocn_annotation.json`.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import shlex
 import shutil
 import sys
 import tempfile
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -24,6 +26,7 @@ import numpy as np
 import pyarrow as pa
 
 from tools.parsing_metrics import segment_starts
+from tools.worlds import World, world_of
 
 NAME_BY = ("option", "subtask")
 LABELS = ("subtask.index", "subtask.id")
@@ -64,16 +67,16 @@ def check_paths(root: Path, out_root: Path) -> None:
         )
 
 
-def option_names(options: list[np.ndarray], subtasks: list[np.ndarray], name_by: str) -> dict[int, dict]:
+def option_names(
+    options: list[np.ndarray], subtasks: list[np.ndarray], name_by: str, subtask_names: Sequence[str]
+) -> dict[int, dict]:
     """Per chosen option: its segment name, frames and segments, and by subtask the share of its
     frames on the subtask it is named after.
 
     By subtask, each option is matched to the ground-truth subtask it overlaps most over all frames,
     as parsing_metrics' alignment reads a parse (several options may share a subtask, a subtask may
-    get no option); ties go to the lower subtask id.
+    get no option); ties go to the lower subtask id. `subtask_names` are the world's, by subtask id.
     """
-    from envs.craft.world import SUBTASK_NAMES
-
     option, subtask = np.concatenate(options), np.concatenate(subtasks)
     first = np.concatenate([o[segment_starts(o)] for o in options])
     names = {}
@@ -83,9 +86,9 @@ def option_names(options: list[np.ndarray], subtasks: list[np.ndarray], name_by:
         if name_by == "option":
             names[k] = {"name": f"option {k}", **entry}
             continue
-        overlap = np.bincount(subtask[chosen], minlength=len(SUBTASK_NAMES))
+        overlap = np.bincount(subtask[chosen], minlength=len(subtask_names))
         best = int(overlap.argmax())
-        names[k] = {"name": SUBTASK_NAMES[best], **entry, "agreement": float(overlap[best] / entry["frames"])}
+        names[k] = {"name": subtask_names[best], **entry, "agreement": float(overlap[best] / entry["frames"])}
     return names
 
 
@@ -94,7 +97,9 @@ def segments_of(option: np.ndarray, names: dict[int, dict]) -> list[tuple[int, s
     return [(int(s), names[int(option[s])]["name"]) for s in segment_starts(option)]
 
 
-def parse_dataset(policy_path: Path, root: Path, name_by: str, batch_size: int, device: str) -> tuple[dict, dict]:
+def parse_dataset(
+    policy_path: Path, root: Path, world: World, name_by: str, batch_size: int, device: str
+) -> tuple[dict, dict]:
     """The policy's segments of every episode of the dataset, by episode index, and the option names."""
     from ocn_data.episodes_table import load_episodes, split_episodes
     from tools.episode_parsing import load_ocn, parse_episodes
@@ -103,7 +108,7 @@ def parse_dataset(policy_path: Path, root: Path, name_by: str, batch_size: int, 
     episodes = load_episodes(root, split_episodes(root, "all"))
     options = [parse.option for parse in parse_episodes(policy, preprocessor, episodes, batch_size)]
     subtasks = [episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)]
-    names = option_names(options, subtasks, name_by)
+    names = option_names(options, subtasks, name_by, world.subtask_names)
     segments = {int(e): segments_of(o, names) for e, o in zip(episodes.episode_index, options, strict=True)}
     return segments, names
 
@@ -167,7 +172,8 @@ def write_annotated(root: Path, out_root: Path, segments: dict, annotation: dict
 def annotate(args: argparse.Namespace) -> dict[str, Any]:
     """Parse, then write the annotated copy; returns the annotation record it stores."""
     check_paths(args.root, args.out_root)
-    segments, names = parse_dataset(args.policy, args.root, args.name_by, args.batch_size, args.device)
+    world = world_of(args.root)  # a dataset of a world ocn-annotate does not know fails here, before parsing
+    segments, names = parse_dataset(args.policy, args.root, world, args.name_by, args.batch_size, args.device)
     annotation = {
         "command": args.command,
         "date": datetime.now(UTC).isoformat(timespec="seconds"),

@@ -1,10 +1,10 @@
-"""What the evaluation tools need to know of a dataset's world (Craft or Dial), chosen once per dataset.
+"""What the evaluation and annotation tools need to know of a dataset's world (Craft or Dial), chosen once per dataset.
 
-`ocn-eval` and `ocn-view` read the world from the dataset (`ocn_data.episodes_table.dataset_world`)
-and get one `World` here: how subtasks are named, which subtasks a task string holds, how results
-name a task, which batched rollouts act in the world and which rerun scene draws it. Everything
-else in those tools is the same code for every world. Rollouts and scenes import torch, LeRobot
-or rerun, so a `World` builds them only when asked.
+`ocn-eval`, `ocn-view` and `ocn-annotate` read the world from the dataset
+(`ocn_data.episodes_table.dataset_world`) and get one `World` here: how subtasks are named, which
+subtasks a task string holds, how results name a task, which batched rollouts act in the world and
+which rerun scene draws it. Everything else in those tools is the same code for every world.
+Rollouts and scenes import torch, LeRobot or rerun, so a `World` builds them only when asked.
 """
 
 from __future__ import annotations
@@ -28,13 +28,16 @@ class World:
 
     `subtask_codes` and `subtask_labels` name each subtask id briefly ("A", "1": table columns, a
     one-subtask task for the rollouts, entity names) and in full ("A get wood", "press 1": lanes,
-    legends); `task_subtasks` gives the subtask ids of a dataset task string; `task_key` is how
-    results name a task; `rollouts` and `scene` build the world's rollout adapter and rerun scene.
+    legends); `subtask_names` as the dataset's task strings spell it ("get wood", "press 1":
+    annotation segments named by subtask); `task_subtasks` gives the subtask ids of a dataset task
+    string; `task_key` is how results name a task; `rollouts` and `scene` build the world's rollout
+    adapter and rerun scene.
     """
 
     name: str
     subtask_codes: tuple[str, ...]
     subtask_labels: tuple[str, ...]
+    subtask_names: tuple[str, ...]
     task_subtasks: Callable[[str], tuple[int, ...]]
     task_key: Callable[[str], str]
     rollouts: Callable[[], RolloutWorld]
@@ -67,6 +70,7 @@ def _craft(root: Path) -> World:
         name="craft",
         subtask_codes=tuple(SUBTASK_LETTERS),
         subtask_labels=tuple(f"{letter} {name}" for letter, name in zip(SUBTASK_LETTERS, SUBTASK_NAMES, strict=True)),
+        subtask_names=SUBTASK_NAMES,
         task_subtasks=lambda task: tuple(parse_task(task, mode)),
         task_key=str,
         rollouts=rollouts,
@@ -92,6 +96,7 @@ def _dial(root: Path) -> World:
         name="dial",
         subtask_codes=tuple(str(d) for d in DIGITS),
         subtask_labels=SUBTASK_NAMES,
+        subtask_names=SUBTASK_NAMES,
         task_subtasks=parse_pin,
         task_key=lambda task: pin_code(parse_pin(task)),
         rollouts=rollouts,

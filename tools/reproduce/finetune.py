@@ -244,12 +244,15 @@ def markdown(result: dict[str, Any]) -> str:
     """The human-readable results file."""
     setting = SETTINGS[result["setting"]]
     labels = task_labels(setting)
+    # compILE's option count differs from the setting's; say so only in a file that has compILE rows.
+    ran = {row["method"] for row in result["summary"].values()}
+    compile_note = " (compILE: one per latent category of its decoder)" if "compILE" in ran else ""
     lines = [
         f"# Finetuning on Craft {setting.name.upper()}: {setting.tasks}",
         "",
         f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
         f"{result['date']}. Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
-        f"{setting.n_options} options per cloned model (compILE: one per latent category of its decoder), cloned by "
+        f"{setting.n_options} options per cloned model{compile_note}, cloned by "
         f"`lerobot-train`; PPO through `ocn-finetune`, "
         f"{result['settings']['frames']} env frames per run, {result['settings']['envs']} envs. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
