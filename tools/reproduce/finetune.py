@@ -334,7 +334,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         parser.add_argument("--envs", type=int, default=64, help="envs stepped together in PPO")
         parser.add_argument("--rewards", type=lambda s: s.split(","), default=list(REWARDS),
                             help="comma-separated: sparse,dense")
-        parser.add_argument("--methods", type=lambda s: s.split(","), default=[m.key for m in METHODS],
+        parser.add_argument("--methods", type=lambda s: s.split(","), default=",".join(m.key for m in METHODS),
                             help="comma-separated: " + ",".join(m.key for m in METHODS))
         imitation.add_training_arguments(parser)
         parser.add_argument("--results", type=Path, default=RESULTS)

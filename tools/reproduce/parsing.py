@@ -400,7 +400,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("parsing-s1", help="parsing of S1 over training, OCN against OMPN, compILE and HIL "
                             "(figure 7)", description=__doc__, epilog=_EPILOG, formatter_class=_HelpFormatter)
     parser.add_argument("--seeds", type=int, default=3, help="seeds per method")
-    parser.add_argument("--methods", type=lambda s: s.split(","), default=[m.key for m in METHODS],
+    parser.add_argument("--methods", type=lambda s: s.split(","), default=",".join(m.key for m in METHODS),
                         help="comma-separated: " + ",".join(m.key for m in METHODS))
     parser.add_argument("--eval-every", type=int, default=500,
                         help="lerobot-train steps between saved checkpoints (its --save_freq); each is scored, and "
