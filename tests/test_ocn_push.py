@@ -48,8 +48,15 @@ def test_dataset_dry_run_is_the_dataset_with_a_card_for_the_new_repo(craft_datas
     card = DatasetCard.load(out / "README.md")
     assert card.data.license == "apache-2.0" and {"LeRobot", "robotics"} <= set(card.data.tags)
     assert card.data.task_categories == ["robotics"] and card.data.configs[0]["data_files"] == "data/*/*.parquet"
-    # the rebuilt card is record_demos' card, with the new repo id
-    assert staged["README.md"].decode() == source["README.md"].decode().replace("local/craft_small", "me/craft_small")
+    # the rebuilt card is record_demos' card for the new repo id; the recording commands it quotes keep
+    # the id they recorded with
+    recorded = [line for line in source["README.md"].decode().splitlines() if line.startswith("record_demos ")]
+    assert recorded and all("--repo-id local/craft_small" in line for line in recorded)
+    expected = [
+        line if line in recorded else line.replace("local/craft_small", "me/craft_small")
+        for line in source["README.md"].decode().splitlines()
+    ]
+    assert staged["README.md"].decode().splitlines() == expected
 
 
 def test_policy_dry_run_holds_the_checkpoint_eval_and_model_card(ocn_checkpoint, eval_json, tmp_path):
