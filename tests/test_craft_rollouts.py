@@ -8,9 +8,11 @@ from envs.craft.world import USE, default_max_steps
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy
-from tools.craft_rollouts import free_run_success, option_subtask_success
+from tools.craft_rollouts import craft_world
+from tools.rollouts import free_run_success, option_subtask_success
 
 TASK = "get wood, get iron"
+CRAFT = craft_world("paper")
 
 
 def identity(x):
@@ -49,7 +51,7 @@ def first_use_completes(subtask: str, episodes: int) -> float:
 def test_an_option_that_terminates_at_once_only_gets_its_first_step():
     policy = make_policy()
     set_option_behaviour(policy, action=USE, end_logit=50.0)
-    table = option_subtask_success(policy, identity, identity, ["A", "C"], episodes=64)
+    table = option_subtask_success(policy, identity, identity, CRAFT, ["A", "C"], episodes=64)
     expected = [first_use_completes("A", 64), first_use_completes("C", 64)]
     assert table.shape == (2, 2) and 0 < sum(expected)
     assert np.allclose(table, [expected, expected])
@@ -58,9 +60,9 @@ def test_an_option_that_terminates_at_once_only_gets_its_first_step():
 def test_an_option_that_never_ends_runs_to_the_step_limit():
     policy = make_policy()
     set_option_behaviour(policy, action=0, end_logit=-50.0)  # always "down": never uses anything
-    table = option_subtask_success(policy, identity, identity, ["A"], episodes=8)
+    table = option_subtask_success(policy, identity, identity, CRAFT, ["A"], episodes=8)
     assert np.array_equal(table, np.zeros((2, 1)))
-    assert free_run_success(policy, identity, identity, [TASK], episodes=8) == {TASK: 0.0}
+    assert free_run_success(policy, identity, identity, CRAFT, [TASK], episodes=8) == {TASK: 0.0}
 
 
 def test_fixed_length_options_run_on_and_restart_every_skill_length():
@@ -74,7 +76,7 @@ def test_fixed_length_options_run_on_and_restart_every_skill_length():
         return act(state, option, option_h, restart, greedy)
 
     policy.act_with_options = recording_act
-    table = option_subtask_success(policy, identity, identity, ["A"], episodes=2)
+    table = option_subtask_success(policy, identity, identity, CRAFT, ["A"], episodes=2)
     assert np.array_equal(table, np.zeros((2, 1)))  # "down" forever completes nothing
     assert len(restarts) == default_max_steps(1)  # the termination head never cut a run short
     assert restarts == [[t % 3 == 0] * 4 for t in range(len(restarts))]

@@ -31,7 +31,8 @@ from ocn_data.record_demos import main as record_demos
 from policies.ocn import OCNConfig, OCNPolicy
 from policies.ocn.processor_ocn import make_ocn_pre_post_processors
 from policies.sequence import training_windows
-from tools.dial_rollouts import free_run_success, option_subtask_success
+from tools.dial_rollouts import DIAL_WORLD
+from tools.rollouts import free_run_success, option_subtask_success
 from rrd_reading import forward_fill, read_rrd, values
 from tools import ocn_annotate, ocn_eval, ocn_view
 from tools.episode_parsing import load_ocn, parse_episodes
@@ -181,17 +182,21 @@ def test_lerobot_train_checkpoint_reloads_and_runs_in_lerobot_eval(trained):
 
 def test_dial_rollouts_of_the_trained_policy(trained):
     policy, preprocessor, postprocessor = load_ocn(trained)
-    rates = free_run_success(policy, preprocessor, postprocessor, ["12", "press 2, press 1"], episodes=1, seed=5)
+    rates = free_run_success(
+        policy, preprocessor, postprocessor, DIAL_WORLD, ["12", "press 2, press 1"], episodes=1, seed=5
+    )
     assert list(rates) == ["12", "press 2, press 1"] and all(0.0 <= r <= 1.0 for r in rates.values())
-    table = option_subtask_success(policy, preprocessor, postprocessor, ["1", "press 2"], episodes=1, seed=5)
+    table = option_subtask_success(
+        policy, preprocessor, postprocessor, DIAL_WORLD, ["1", "press 2"], episodes=1, seed=5
+    )
     assert table.shape == (2, 2) and np.isin(table, [0.0, 1.0]).all()
     with torch.no_grad():  # options that terminate at once get one step: too short to reach a key
         policy.core.options.b_out[..., -1] = 50.0
         policy.core.options.w_out[..., -1] = 0.0
-    table = option_subtask_success(policy, preprocessor, postprocessor, ["1", "2"], episodes=2, seed=5)
+    table = option_subtask_success(policy, preprocessor, postprocessor, DIAL_WORLD, ["1", "2"], episodes=2, seed=5)
     assert np.array_equal(table, np.zeros((2, 2)))
     with pytest.raises(ValueError, match="Unknown task"):
-        free_run_success(policy, preprocessor, postprocessor, ["48"], episodes=1)
+        free_run_success(policy, preprocessor, postprocessor, DIAL_WORLD, ["48"], episodes=1)
 
 
 def _key_presses(state: np.ndarray, pin: tuple[int, ...]) -> np.ndarray:

@@ -1,6 +1,5 @@
-"""Batched rollouts of a trained OCN in Dial: free-run success per PIN, and each option alone.
-
-The Dial counterpart of `tools.craft_rollouts`, on the same loops (`tools.rollouts`). Every
+"""Dial as a world of the batched rollouts (`tools.rollouts`: free-run success per PIN, and each
+option alone), the counterpart of `tools.craft_rollouts`. Every
 episode runs in one `DialBatch` from the env's own reset (the home pose, fingertip 0.25 m
 above the pad centre, plus the reset's joint noise; env seeds seed, seed+1, ...) with the env's
 step limit (150 steps per digit). The policy's postprocessed actions are the 9 motor controls,
@@ -18,10 +17,7 @@ import numpy as np
 from envs.dial.batch import DialBatch
 from envs.dial.lerobot_env import motor_controls
 from envs.dial.task import parse_pin, task_description
-from policies.ocn import OCNPolicy
 from tools import rollouts
-from tools.episode_parsing import Processor
-from tools.rollout_mcap import RolloutMcapWriter
 
 
 def _start(tasks: Sequence[str], seeds: Sequence[int]) -> tuple[DialBatch, np.ndarray]:
@@ -39,31 +35,3 @@ DIAL_WORLD = rollouts.RolloutWorld(
     start=_start, env_action=_controls, policy_task=lambda task: task_description(parse_pin(task))
 )
 
-
-def free_run_success(
-    policy: OCNPolicy,
-    preprocessor: Processor,
-    postprocessor: Processor,
-    tasks: Sequence[str],
-    episodes: int,
-    seed: int = 0,
-    log: RolloutMcapWriter | None = None,
-) -> dict[str, float]:
-    """Fraction of `episodes` fresh starts per PIN on which the whole policy dials the PIN within the
-    step limit; with `log`, every step (and the policy's p^c, option and termination) also goes to
-    that MCAP."""
-    return rollouts.free_run_success(policy, preprocessor, postprocessor, DIAL_WORLD, tasks, episodes, seed, log)
-
-
-def option_subtask_success(
-    policy: OCNPolicy,
-    preprocessor: Processor,
-    postprocessor: Processor,
-    subtasks: Sequence[str],
-    episodes: int,
-    seed: int = 0,
-) -> np.ndarray:
-    """Paper table 1 for Dial: [n_options, len(subtasks)] fraction of fresh starts on which option i,
-    run alone from its initial state, presses digit j before its termination fires (e > 0.5) or the
-    step limit (150 steps)."""
-    return rollouts.option_subtask_success(policy, preprocessor, postprocessor, DIAL_WORLD, subtasks, episodes, seed)
