@@ -72,6 +72,28 @@ class EpisodeBatch:
         self.t[ids] = 0
         self.done[ids] = False
 
+    def _advance(
+        self, sub_done: np.ndarray, active: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Count one step of the `active` envs, of which `sub_done` completed their current subtask:
+        progress, termination at the task's end, truncation at the step limit. Returns the dense or
+        sparse reward, terminated, truncated and the info every world reports."""
+        sub_index = self.progress
+        self.progress = sub_index + sub_done
+        success = self.progress == self.task_len
+        terminated = sub_done & success
+        self.t = self.t + active
+        truncated = (self.t >= self.max_steps) & ~terminated & active
+        self.done = self.done | terminated | truncated
+        reward = (sub_done if self.reward == "dense" else terminated).astype(np.float32)
+        info = {
+            "subtask_index": sub_index,
+            "subtask_done": sub_done,
+            "progress": self.progress.copy(),
+            "is_success": success,
+        }
+        return reward, terminated, truncated, info
+
     def task_of(self, env_id: int) -> tuple[int, ...]:
         """One env's task as subtask ids."""
         return tuple(self.tasks[env_id, : self.task_len[env_id]].tolist())

@@ -168,22 +168,8 @@ class CraftBatch(EpisodeBatch):
         if at_workshop.any():
             event = gather | self._craft(at_workshop, ahead)
 
-        sub_index = self.progress
-        sub_done = event & (ahead == self._target_kinds[ar, sub_index])
-        self.progress = sub_index + sub_done
-        success = self.progress == self.task_len
-        terminated = sub_done & success
-        self.t = self.t + ~was_done
-        truncated = (self.t >= self.max_steps) & ~terminated & ~was_done
-        self.done = was_done | terminated | truncated
-
-        reward = (sub_done if self.reward == "dense" else terminated).astype(np.float32)
-        info = {
-            "subtask_index": sub_index,
-            "subtask_done": sub_done,
-            "progress": self.progress.copy(),
-            "is_success": success,
-        }
+        sub_done = event & (ahead == self._target_kinds[ar, self.progress])
+        reward, terminated, truncated, info = self._advance(sub_done, ~was_done)
         return self.observe(), reward, terminated, truncated, info
 
     def _craft(self, at_workshop: np.ndarray, workshop: np.ndarray) -> np.ndarray:

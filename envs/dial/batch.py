@@ -178,20 +178,6 @@ class DialBatch(EpisodeBatch):
         self.armed = np.where(active[:, None], (self.armed & ~near) | (distance > RELEASE_L1), self.armed)
         key = np.where(hit.any(axis=1), hit.argmax(axis=1), -1)
 
-        sub_index = self.progress
         sub_done = (key >= 0) & (key == self.current_digit())
-        self.progress = sub_index + sub_done
-        success = self.progress == self.task_len
-        terminated = sub_done & success
-        self.t = self.t + active
-        truncated = (self.t >= self.max_steps) & ~terminated & active
-        self.done = self.done | terminated | truncated
-        reward = (sub_done if self.reward == "dense" else terminated).astype(np.float32)
-        info = {
-            "subtask_index": sub_index,
-            "subtask_done": sub_done,
-            "progress": self.progress.copy(),
-            "is_success": success,
-            "key": key,
-        }
-        return self.observe(), reward, terminated, truncated, info
+        reward, terminated, truncated, info = self._advance(sub_done, active)
+        return self.observe(), reward, terminated, truncated, {**info, "key": key}
