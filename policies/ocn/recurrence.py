@@ -170,14 +170,16 @@ class OCNCore(nn.Module):
         """
         rows = torch.arange(start.shape[0], device=start.device)
         forced, steps = self.schedule(start, state.steps)
-        continued = self.options.step(x.options, state.option_h)
+        restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
+        # One-step options (MoE, and the flat and compILE pools built on it) never continue: every
+        # row decides at every step, so the continuing branch would be computed only to be discarded.
+        continued = restarted if self.skill_length == 1 else self.options.step(x.options, state.option_h)
         end = self.termination(forced, continued.end[state.option, rows])
         fired = end > 0.5 if greedy else torch.bernoulli(end).bool()
         decided = forced | fired
         logits, controller_h = self.decide(x.controller, state.controller_h)
         p_c = torch.softmax(logits, dim=-1)
         choice = p_c.argmax(-1) if greedy else torch.multinomial(p_c, 1).squeeze(-1)
-        restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
         option = torch.where(decided, choice, state.option)
         gate = decided[None, :, None]
         option_params = torch.where(gate, restarted.logits, continued.logits)
