@@ -1,7 +1,7 @@
 """`ocn-finetune` on Dial: PPO over frozen continuous options on 3-digit PINs, through the
 checkpoint's normalising processors, a finetuned checkpoint that `lerobot-eval --env.type=dial` runs
 (its path taken in process; test_dial_ocn runs the CLI itself on a Dial checkpoint), MoE as the
-baseline, bad input."""
+baseline, bad input; and `ocn-reproduce dial`'s command line and checks."""
 
 from __future__ import annotations
 
@@ -129,3 +129,56 @@ def test_flat_ppo_on_dial_and_other_bad_dial_input_are_refused(dial_checkpoint, 
     assert_refused(cases, capsys)
     assert not any((tmp_path / name).exists() for name in "abc")
 
+
+# ---- ocn-reproduce dial ----------------------------------------------------------------------------
+
+
+def test_ocn_reproduce_dial_help_lists_its_options(capsys):
+    from tools.reproduce import main as reproduce
+
+    with pytest.raises(SystemExit) as exit_info:
+        reproduce(["dial", "--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    for option in ("--seeds", "--frames", "--envs", "--rewards", "--methods", "--tasks", "--rollouts", "--steps",
+                   "--batch-size", "--episodes-per-task", "--workdir", "--results"):
+        assert option in text, option
+
+
+def test_dial_clones_train_with_the_dial_flags_and_finetune_on_the_pins(dial_dataset, tmp_path):
+    import argparse
+
+    from tools.reproduce import dial
+    from tools.reproduce.finetune import Setting, finetune_command
+    from tools.reproduce.runs import TrainedRun, train_command
+
+    assert dial.TWO_DIGIT_PINS.split(",") == ["12", "14", "18", "21", "24", "28", "41", "42", "48", "81", "82", "84"]
+    assert [method.key for method in dial.METHODS] == ["ocn", "moe"]
+    args = argparse.Namespace(steps=2, batch_size=8, window_size=120, num_workers=0, threads=1,
+                              controller_lr_scale=1.0, frames=100, envs=4)
+    moe = dial.METHODS[1]
+    overrides = {"n_options": 4, "temperature": 10.0, **moe.overrides}
+    command = train_command(dial.train_settings(args), dial_dataset, DIAL_REPO_ID, tmp_path / "train", 1, overrides)
+    for flag in ("--policy.obs_encoder=identity", "--policy.action_type=continuous", "--policy.skip_long_episodes=true",
+                 "--policy.n_options=4", "--policy.temperature=10.0", "--policy.hierarchy=moe"):
+        assert flag in command, flag
+    clone = TrainedRun(tmp_path / "moe" / "pretrained_model", "", None)
+    setting = Setting("dial", ((dial.DATA, dial.TWO_DIGIT_PINS),), dial.N_OPTIONS, dial.FINETUNE_PINS)
+    command = finetune_command(args, setting, moe, "sparse", 1, [clone], tmp_path / "out")
+    assert command[command.index("--tasks") + 1] == "124,481,842" and "--flat" not in command
+    assert command[command.index("--checkpoint") + 1] == str(clone.checkpoint)
+
+
+def test_dial_checks_hold_only_where_ocn_meets_the_bars_and_beats_moe():
+    from tools.reproduce.dial import must_show
+
+    imitated = {"f1_tol1": {"mean": 0.95}, "nmi": {"mean": 0.7}, "mean_success_rate": {"mean": 0.85}}
+    summary = {"OCN | sparse": {"at_budget": {"success": {"mean": 0.75}}},
+               "MoE | sparse": {"at_budget": {"success": {"mean": 0.8}}}}
+    checks = {check["check"].split(" (")[0]: check["holds"] for check in must_show(imitated, summary)}
+    assert checks == {
+        "OCN imitation: F1@1 >= 0.9": True, "OCN imitation: NMI >= 0.8": False,
+        "OCN imitation: 2-digit success >= 0.8": True, "OCN, sparse: 3-digit success >= 0.7": True,
+        "sparse: MoE's 3-digit success below OCN's": False,
+    }
+    assert must_show({}, {}) == []
