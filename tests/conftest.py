@@ -1,5 +1,5 @@
 """Session-wide fixtures: a small recorded Craft dataset, an `ocn` checkpoint built on it, and a
-`compile` checkpoint trained on it.
+`compile` checkpoint trained on it; a tiny recorded Dial dataset.
 
 The `ocn` checkpoint is written the way `lerobot-train` writes one (policy config and weights plus
 the pre/post-processor pipelines, all in one `pretrained_model` folder) but without training: tools
@@ -25,6 +25,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.record_demos import main as record_demos
 
 CRAFT_REPO_ID = "local/craft_small"
+DIAL_REPO_ID = "local/dial_ocn_test"
 
 
 def run_cli(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -95,6 +96,16 @@ def craft_dataset(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("craft") / "ds"
     args = ["--tasks", "AC,CD", "--episodes-per-task", "10", "--root", str(root), "--repo-id", CRAFT_REPO_ID,
             "--seed", "3", "--subtask-annotations"]
+    assert record_demos(args) == 0
+    return root
+
+
+@pytest.fixture(scope="session")
+def dial_dataset(tmp_path_factory) -> Path:
+    """Root of a recorded Dial dataset: 3 expert episodes each of PINs 12 and 21."""
+    root = tmp_path_factory.mktemp("dial") / "ds"
+    args = ["--env", "dial", "--tasks", "12,21", "--episodes-per-task", "3", "--root", str(root),
+            "--repo-id", DIAL_REPO_ID]
     assert record_demos(args) == 0
     return root
 

@@ -4,7 +4,8 @@ torques out of the postprocessor, `lerobot-train --policy.type=ocn` and `lerobot
 `ocn-view` on a Dial dataset (ground-truth boundaries at the key presses, the JSON, the MCAP log of
 the free runs, the .rrd read back), and `ocn-annotate`'s copy of it read back by LeRobot.
 
-One tiny recorded dataset (PINs 12 and 21) and one tiny training run are shared by the module.
+One tiny recorded dataset (PINs 12 and 21, conftest's `dial_dataset`) and one tiny training run are
+shared by the module.
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ from envs.dial.scene import N_JOINTS
 from ocn_data.dial_recorder import dial_state_names
 from ocn_data.episodes_table import load_episodes, split_episodes
 from ocn_data.mcap_log import read_mcap_messages
-from ocn_data.record_demos import main as record_demos
 from policies.ocn import OCNConfig, OCNPolicy
 from policies.ocn.processor_ocn import make_ocn_pre_post_processors
 from policies.sequence import training_windows
@@ -38,22 +38,13 @@ from tools import ocn_annotate, ocn_eval, ocn_view
 from tools.episode_parsing import load_ocn, parse_episodes
 from tools.parsing_metrics import boundaries_from_labels
 from tools.view_scenes import DialScene
-from conftest import run_cli
+from conftest import DIAL_REPO_ID, run_cli
 
-REPO_ID = "local/dial_ocn_test"
+REPO_ID = DIAL_REPO_ID
 STEPS = 3
 # Recorded episodes are about 40-140 frames long: windows of 64 make some of them "long episodes".
 WINDOW = 64
 DIAL = {"obs_encoder": "identity", "action_type": "continuous", "hidden_size": 16, "mlp_hidden_size": 16}
-
-
-@pytest.fixture(scope="module")
-def dial_dataset(tmp_path_factory) -> Path:
-    """Root of 3 expert episodes each of PINs 12 and 21."""
-    root = tmp_path_factory.mktemp("dial") / "ds"
-    args = ["--env", "dial", "--tasks", "12,21", "--episodes-per-task", "3", "--root", str(root), "--repo-id", REPO_ID]
-    assert record_demos(args) == 0
-    return root
 
 
 @pytest.fixture(scope="module")

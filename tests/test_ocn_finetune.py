@@ -153,25 +153,32 @@ def test_finetuned_checkpoint_runs_in_hard_mode_through_its_processors(finetuned
     assert not decisions_match_frames(finetuned)  # OCN's options last several steps
 
 
-def test_finetuned_checkpoint_runs_under_lerobot_eval_rollout(finetuned):
-    """The path `lerobot-eval --policy.path=... --env.type=craft --env.task=ADC` takes, in process."""
+def lerobot_eval_rollout(checkpoint: Path, env: str, task: str, max_steps: int) -> tuple[dict, PreTrainedPolicy]:
+    """The path `lerobot-eval --policy.path=CHECKPOINT --env.type=ENV --env.task=TASK` takes, in process
+    (without a fresh interpreter's imports): the policy and both processor pairs built as it builds
+    them, one batched rollout in 2 envs. Returns the rollout and the policy."""
     from lerobot.configs import PreTrainedConfig
     from lerobot.envs.factory import make_env, make_env_config, make_env_pre_post_processors
     from lerobot.policies.factory import make_policy, make_pre_post_processors
     from lerobot.scripts.lerobot_eval import rollout
 
-    path = str(finetuned / "pretrained_model")
-    env_cfg = make_env_config("craft", task="ADC", max_steps=15)
+    path = str(checkpoint)
+    env_cfg = make_env_config(env, task=task, max_steps=max_steps)
     policy_cfg = PreTrainedConfig.from_pretrained(path)
     policy_cfg.pretrained_path = path
     policy = make_policy(cfg=policy_cfg, env_cfg=env_cfg).eval()
     preprocessor, postprocessor = make_pre_post_processors(policy_cfg, pretrained_path=path)
     env_preprocessor, env_postprocessor = make_env_pre_post_processors(env_cfg=env_cfg, policy_cfg=policy_cfg)
-    vec = make_env(env_cfg, n_envs=2)["craft"][0]
+    vec = make_env(env_cfg, n_envs=2)[env][0]
     try:
         out = rollout(vec, policy, env_preprocessor, env_postprocessor, preprocessor, postprocessor, seeds=[0, 1])
     finally:
         vec.close()
+    return out, policy
+
+
+def test_finetuned_checkpoint_runs_under_lerobot_eval_rollout(finetuned):
+    out, policy = lerobot_eval_rollout(finetuned / "pretrained_model", "craft", "ADC", max_steps=15)
     assert out["action"].shape[0] == 2 and out["success"].dtype == torch.bool
     assert policy.config.execution == "hard" and policy.last_step.decided is not None
 

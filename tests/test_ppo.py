@@ -10,11 +10,13 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy
 from tools.ocn_finetune import primitive_action_pool
-from tools.ppo import Decisions, PPOConfig, PPOTrainer, collect, finetune, replay_controller, semi_mdp_gae
+from tools.craft_rollouts import craft_world
+from tools.ppo import Acting, Decisions, PPOConfig, PPOTrainer, collect, finetune, replay_controller, semi_mdp_gae
 
 torch.set_num_threads(1)
 
 TASK = "get wood"
+CRAFT = Acting(craft_world())  # policies built in memory: identity processors
 
 
 def craft_policy(n_options: int = 3, **overrides) -> OCNPolicy:
@@ -132,7 +134,7 @@ def test_collect_records_one_decision_per_option_run_with_discounted_rewards():
     set_option(policy, 0, DOWN, end_logit=-50.0)
     set_option(policy, 1, USE, end_logit=50.0)
     envs = WoodAhead(16, reward="dense", max_steps=6)
-    batch = collect(policy, envs, [TASK] * 16, range(16), gamma=0.5)
+    batch = collect(policy, envs, CRAFT, [TASK] * 16, range(16), gamma=0.5)
     first = batch.option[:, 0]
     assert set(first.tolist()) == {0, 1}
     solved = first == 1
@@ -165,7 +167,7 @@ def test_rewards_inside_an_option_are_discounted_by_their_step_within_it():
                 self.grid[:, 5, 4] = WOOD
             return super().step(actions)
 
-    batch = collect(policy, LateWood(2, max_steps=10), [TASK] * 2, [0, 1], gamma=0.9)
+    batch = collect(policy, LateWood(2, max_steps=10), CRAFT, [TASK] * 2, [0, 1], gamma=0.9)
     assert (batch.count == 1).all() and (batch.duration[:, 0] == 3).all()
     np.testing.assert_allclose(batch.reward[:, 0], 0.9**2)
 
@@ -221,7 +223,7 @@ def test_ppo_learns_to_pick_the_option_that_solves_the_task_and_leaves_options_u
     frozen = {name: p.clone() for name, p in policy.named_parameters() if not name.startswith("core.controller")}
     envs = WoodAhead(64, reward="sparse", max_steps=6)
     config = PPOConfig(batch_size=64)  # the paper's lr, epochs, entropy and gamma
-    rows = finetune(policy, envs, [TASK], total_frames=8_000, config=config, seed=0)
+    rows = finetune(policy, envs, CRAFT, [TASK], total_frames=8_000, config=config, seed=0)
     assert rows[0]["success"] < 0.5  # chance: option 0 first with probability 1/3
     assert np.mean([row["success"] for row in rows[-5:]]) > 0.9
     for name, param in policy.named_parameters():
@@ -242,7 +244,7 @@ def test_only_the_controller_its_task_states_and_the_critic_are_optimised():
 
 def test_finetuning_is_reproducible_with_its_seed():
     def run() -> list[dict]:
-        return finetune(solving_pool(), WoodAhead(16, reward="sparse", max_steps=6), [TASK], total_frames=600,
+        return finetune(solving_pool(), WoodAhead(16, reward="sparse", max_steps=6), CRAFT, [TASK], total_frames=600,
                         config=PPOConfig(lr=3e-3, batch_size=16), seed=3)
 
     assert run() == run()
@@ -252,7 +254,7 @@ def test_finetuning_refuses_soft_or_greedy_policies():
     with pytest.raises(ValueError, match="execution='hard' and inference_mode='sample'"):
         PPOTrainer(craft_policy(execution="soft"), PPOConfig())
     with pytest.raises(ValueError, match="execution='hard' and inference_mode='sample'"):
-        collect(craft_policy(inference_mode="greedy"), CraftBatch(2), [TASK] * 2, [0, 1], 0.97)
+        collect(craft_policy(inference_mode="greedy"), CraftBatch(2), CRAFT, [TASK] * 2, [0, 1], 0.97)
 
 
 def test_decisions_mask_marks_real_decisions():
@@ -273,7 +275,7 @@ def test_moe_rollouts_are_one_step_options_with_undiscounted_step_rewards():
     policy = craft_policy(n_options=2, hierarchy="moe")
     set_option(policy, 0, USE, end_logit=-50.0)
     set_option(policy, 1, DOWN, end_logit=-50.0)  # blocked by the wood: the agent keeps facing it
-    batch = collect(policy, WoodAhead(16, reward="dense", max_steps=5), [TASK] * 16, range(16), gamma=0.5)
+    batch = collect(policy, WoodAhead(16, reward="dense", max_steps=5), CRAFT, [TASK] * 16, range(16), gamma=0.5)
     assert np.array_equal(batch.count, batch.frames) and (batch.duration[batch.mask] == 1).all()
     assert (batch.duration[~batch.mask] == 0).all()
     np.testing.assert_allclose(batch.reward.sum(1), batch.return_)
@@ -306,7 +308,7 @@ def test_hil_rollouts_run_every_option_for_exactly_skill_length_steps():
     policy = craft_policy(n_options=2, hierarchy="hil", skill_length=3)
     set_option(policy, 0, DOWN, end_logit=-50.0)
     set_option(policy, 1, USE, end_logit=50.0)
-    batch = collect(policy, WoodAhead(32, reward="dense", max_steps=10), [TASK] * 32, range(32), gamma=0.5)
+    batch = collect(policy, WoodAhead(32, reward="dense", max_steps=10), CRAFT, [TASK] * 32, range(32), gamma=0.5)
     last = batch.count - 1
     assert np.array_equal(batch.count, -(-batch.frames // 3))
     for e in range(32):
@@ -338,11 +340,11 @@ def test_flat_ppo_learns_to_use_the_wood_it_faces_well_above_the_random_rate():
     policy = primitive_action_pool([TASK], hidden_size=32)
 
     def success_rate() -> float:
-        batch = collect(policy, WoodAhead(256, reward="sparse", max_steps=6), [TASK] * 256, range(256), 0.97)
+        batch = collect(policy, WoodAhead(256, reward="sparse", max_steps=6), CRAFT, [TASK] * 256, range(256), 0.97)
         return float(batch.success.mean())
 
     random_rate = success_rate()
-    finetune(policy, WoodAhead(64, reward="sparse", max_steps=6), [TASK], total_frames=8_000,
+    finetune(policy, WoodAhead(64, reward="sparse", max_steps=6), CRAFT, [TASK], total_frames=8_000,
              config=PPOConfig(batch_size=256), seed=0)
     learned = success_rate()
     assert random_rate < 0.4 and learned > 0.9 and learned > random_rate + 0.5, (random_rate, learned)

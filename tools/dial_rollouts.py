@@ -1,5 +1,5 @@
 """Dial as a world of the batched rollouts (`tools.rollouts`: free-run success per PIN, and each
-option alone), the counterpart of `tools.craft_rollouts`. Every
+option alone, and PPO's episodes in `tools.ppo`), the counterpart of `tools.craft_rollouts`. Every
 episode runs in one `DialBatch` from the env's own reset (the home pose, fingertip 0.25 m
 above the pad centre, plus the reset's joint noise; env seeds seed, seed+1, ...) with the env's
 step limit (150 steps per digit). The policy's postprocessed actions are the 9 motor controls,
@@ -10,8 +10,6 @@ given. In the option x subtask table each subtask is one digit ("1" or "press 1"
 one-digit PIN: an option succeeds when that key is pressed before its termination fires.
 """
 
-from collections.abc import Sequence
-
 import numpy as np
 
 from envs.dial.batch import DialBatch
@@ -20,10 +18,9 @@ from envs.dial.task import parse_pin, task_description
 from tools import rollouts
 
 
-def _start(tasks: Sequence[str], seeds: Sequence[int]) -> tuple[DialBatch, np.ndarray]:
-    """One env per PIN, from the reset pose its seed draws."""
-    dial = DialBatch(len(tasks), reward="sparse")
-    return dial, dial.reset(seeds=seeds, tasks=[parse_pin(task) for task in tasks])
+def _new_batch(num_envs: int, reward: str, max_steps: int | None) -> DialBatch:
+    """Envs whose PINs come with each reset."""
+    return DialBatch(num_envs, reward=reward, max_steps=max_steps)
 
 
 def _controls(actions: np.ndarray) -> np.ndarray:
@@ -32,6 +29,5 @@ def _controls(actions: np.ndarray) -> np.ndarray:
 
 
 DIAL_WORLD = rollouts.RolloutWorld(
-    start=_start, env_action=_controls, policy_task=lambda task: task_description(parse_pin(task))
+    new_batch=_new_batch, env_action=_controls, policy_task=lambda task: task_description(parse_pin(task))
 )
-

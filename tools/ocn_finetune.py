@@ -1,4 +1,4 @@
-"""`ocn-finetune`: PPO finetuning of a fresh OCN controller over frozen options on new Craft tasks.
+"""`ocn-finetune`: PPO finetuning of a fresh OCN controller over frozen options on new Craft or Dial tasks.
 
 The RL phase of the paper (section 3.3, appendix A.1): the options of one or more trained `ocn`
 checkpoints are pooled (S1: one checkpoint's options; S2: two checkpoints' options concatenated),
@@ -7,6 +7,23 @@ option space (see `tools.ppo`) while every option stays frozen. The result is an
 checkpoint with `execution="hard"`, so `load_ocn` and `lerobot-eval --policy.path=DIR/pretrained_model`
 run the finetuned hierarchy unchanged. A checkpoint of the MoE or HIL baseline (`hierarchy="moe"` or
 `"hil"`) keeps its hierarchy, so its options keep running for their fixed number of steps.
+
+The world PPO acts in is the checkpoints' own, read from the widths of their state and action
+(`tools.worlds.policy_world`: 81 floats and one action index for Craft, 39 floats and 9 motor
+controls for Dial), since a checkpoint has no dataset beside it to ask; the PPO loop, its semi-MDP
+GAE and this command are the same code for both, the world entering only through its batch
+simulator, its task names and how actions reach the env (`tools.ppo.Acting`). States and actions
+go through the first checkpoint's pre- and post-processors, as under `lerobot-eval`: on Dial they
+standardise the 39 floats and unstandardise the 9 torques with the dataset's statistics (so pooled
+Dial checkpoints must share them), on Craft they are identities. The finetuned checkpoint is saved
+with those processors, so `lerobot-eval --env.type=dial --env.task=124` runs it as it trained.
+
+Tasks are a fixed comma-separated list (Craft `ADC,CAD,DCA`, Dial PINs `124,481,842`), not PINs
+drawn afresh each episode: the controller learns one initial state h^c_{tau,0} per task, and on
+Dial that state is the only place the PIN reaches the policy (the 39 floats hold the arm and the
+key offsets, not the PIN), so each PIN the controller must dial is a task of its own. The paper's
+Dial finetuning dials 3-digit PINs from S = (1, 2, 4, 8); a list of all of them (36) is one
+`--tasks` away.
 
 A `compile` checkpoint gets compILE's RL form (the paper's: decoder frozen, a re-initialised encoder
 predicting the latent, trained by the same PPO). With concrete latents, the frozen decoder given the
@@ -18,17 +35,20 @@ The result is an `ocn` checkpoint whose options are that decoder (`decoder_laten
 decoders into one pool, option d * latent_dim + k being decoder d given latent k. A compILE with
 Gaussian latents has no pool of latents to choose from and is refused.
 
-`--flat` (instead of --checkpoint) trains the flat PPO baseline from scratch, with no demos: a
+`--flat` (instead of --checkpoint) trains Craft's flat PPO baseline from scratch, with no demos: a
 policy on primitive actions, built as the same network whose N = 5 options are the five primitive
 actions as frozen one-step options (option a always emits action a) under `hierarchy="moe"`, so the
 controller picks an action at every step. The controller is then an ordinary recurrent actor (the
 OCN cell over the Craft observation features, one learned initial state per task, temperature 1
 unless --temperature says otherwise) and trains by the very same PPO code; its curves are
 comparable with OCN's on env frames, and its checkpoint runs under `lerobot-eval` like any other.
+Dial has no primitive-action pool (its actions are 9 continuous torques) and the paper's Dial
+comparison (figure 6) has no flat baseline, so `--flat` with Dial PINs is refused.
 
 Writes into --out: curve.csv (one row per PPO iteration: env frames, mean return, success overall
-and per task as `success[ADC]`, PPO statistics), curve.png, finetune.json (settings and summary) and
-pretrained_model/ (config, weights and the first checkpoint's pre/post-processors).
+and per task as `success[ADC]` or `success[124]`, PPO statistics), curve.png, finetune.json
+(settings and summary) and pretrained_model/ (config, weights and the first checkpoint's
+pre/post-processors).
 """
 
 from __future__ import annotations
@@ -48,8 +68,10 @@ import torch
 from lerobot.configs import NormalizationMode
 from lerobot.policies.pretrained import PreTrainedPolicy
 from policies.compile import CompILEPolicy
-from policies.ocn import OCNConfig, OCNPolicy
+from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.sequence import SequenceConfig
+from tools.episode_parsing import Processor, load_policy
+from tools.worlds import World, craft, dial, policy_world
 
 # Config fields that must agree for options of different checkpoints to share one encoder, one
 # action head and one stacked cell.
@@ -58,7 +80,7 @@ from policies.sequence import SequenceConfig
 # compILE decoders' latents stack only with decoders of the same latent count and width.
 POOL_FIELDS = ("obs_encoder", "action_type", "n_actions", "hidden_size", "mlp_hidden_size", "mlp_depth",
                "log_std_min", "log_std_max", "hierarchy", "fixed_skill_length", "decoder_latents",
-               "decoder_hidden_size")
+               "decoder_hidden_size", "normalization_mapping")
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -69,19 +91,23 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="a pretrained_model folder of an ocn or compile checkpoint; repeat to pool several "
                              "option sets")
     parser.add_argument("--flat", action="store_true",
-                        help="no checkpoint: flat PPO from scratch over the primitive actions (the baseline)")
+                        help="no checkpoint: flat PPO from scratch over Craft's primitive actions (the baseline; "
+                             "not on Dial)")
     parser.add_argument("--hidden-size", type=int, default=128,
                         help="with --flat: width of the recurrent actor's state and MLP")
     parser.add_argument("--tasks", required=True,
-                        help="comma-separated new tasks, as subtask letters (e.g. ADC,CAD,DCA) or named tasks")
+                        help="comma-separated new tasks: Craft subtask letters (e.g. ADC,CAD,DCA) or named tasks; "
+                             "Dial PINs (e.g. 124,481,842)")
     parser.add_argument("--reward", choices=("sparse", "dense"), default="sparse")
     parser.add_argument("--frames", type=int, default=500_000, help="env frames to train for")
     parser.add_argument("--envs", type=int, default=64, help="envs stepped together; one episode each per iteration")
-    parser.add_argument("--seed", type=int, default=0, help="seeds the new controller, the sampling and the maps")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seeds the new controller, the sampling and the envs (Craft maps, Dial start poses)")
     parser.add_argument("--out", type=Path, required=True, help="output folder (must be new or empty)")
-    parser.add_argument("--mode", choices=("paper", "full"), default="paper", help="Craft world mode")
+    parser.add_argument("--mode", choices=("paper", "full"), default="paper", help="Craft world mode (Dial has none)")
     parser.add_argument("--max-steps", type=int, default=None,
-                        help="episode step limit (default: the env's, 100 for tasks of 3+ subtasks)")
+                        help="episode step limit (default: the env's; Craft 100 for tasks of 3+ subtasks, Dial 150 "
+                             "per digit)")
     parser.add_argument("--temperature", type=float, default=None,
                         help="controller softmax temperature T (default: the first checkpoint's; 1 for --flat "
                              "and for compile checkpoints)")
@@ -118,13 +144,27 @@ def check_poolable(policies: Sequence[OCNPolicy], names: Sequence[str]) -> None:
                 raise ValueError(f"Cannot pool the options of {names[0]} and {name}: their {kind} differ.")
 
 
-def check_craft(policy: OCNPolicy) -> None:
-    """The PPO rollouts feed raw Craft states and take raw action indices: identity normalisation only."""
-    config = policy.config
-    if config.obs_encoder != "craft" or config.action_type != "discrete":
-        raise ValueError("ocn-finetune trains in Craft: it needs a policy with the craft encoder and discrete actions.")
-    if any(mode is not NormalizationMode.IDENTITY for mode in config.normalization_mapping.values()):
-        raise ValueError("ocn-finetune needs identity normalisation of Craft states and actions (the craft default).")
+def check_same_normalisation(
+    policies: Sequence[OCNPolicy], preprocessors: Sequence[Processor], names: Sequence[str]
+) -> None:
+    """Pooled options all read states through the first checkpoint's preprocessor and act through its
+    postprocessor: unless the normalisation is the identity (Craft), the checkpoints must have been
+    trained with the same statistics."""
+    if all(mode == NormalizationMode.IDENTITY for mode in policies[0].config.normalization_mapping.values()):
+        return
+    first = preprocessors[0].state_dict()
+    for preprocessor, name in zip(preprocessors[1:], names[1:], strict=True):
+        theirs = preprocessor.state_dict()
+        same = first.keys() == theirs.keys() and all(
+            first[step].keys() == theirs[step].keys()
+            and all(torch.equal(first[step][key], theirs[step][key]) for key in first[step])
+            for step in first
+        )
+        if not same:
+            raise ValueError(
+                f"Cannot pool the options of {names[0]} and {name}: their normalisation statistics differ "
+                "(pooled options read states through one preprocessor: train them on the same dataset)."
+            )
 
 
 def merge_option_pools(
@@ -265,45 +305,75 @@ def _check_args(args: argparse.Namespace) -> None:
         raise FileExistsError(f"--out {args.out} exists and is not an empty folder; outputs are never overwritten.")
 
 
-def _initial_policy(args: argparse.Namespace, tasks: Sequence[str]) -> tuple[OCNPolicy, Any, Any]:
-    """The policy PPO starts from, with the processors its checkpoint is saved with: the pooled options
-    of --checkpoint under a fresh controller, or with --flat the primitive-action pool."""
-    from policies.ocn import make_ocn_pre_post_processors
-    from tools.episode_parsing import load_policy
+@dataclasses.dataclass
+class Start:
+    """What PPO starts from: the policy, the world it acts in, the new tasks as the policy's task
+    strings (what the env hands the policy, e.g. "press 1, press 2, press 4", keying the new
+    controller's initial states) and as the curve's labels ("124"), and the processors the policy
+    acts through and its checkpoint is saved with."""
 
+    policy: OCNPolicy
+    world: World
+    tasks: list[str]
+    labels: list[str]
+    preprocessor: Processor
+    postprocessor: Processor
+
+
+def _new_tasks(world: World, spec: str) -> tuple[list[str], list[str]]:
+    """--tasks in `world`: the policy's task strings and their labels."""
+    parsed = world.parse_task_list(spec)
+    return [world.task_description(task) for task in parsed], [world.task_code(task) for task in parsed]
+
+
+def _flat_world(args: argparse.Namespace) -> World:
+    """Craft, the one world with a flat baseline; --tasks of Dial PINs ask for flat PPO on Dial, refused."""
+    try:
+        dial().parse_task_list(args.tasks)
+    except ValueError:
+        return craft(args.mode)
+    raise ValueError(
+        "--flat is Craft's flat baseline over its 5 primitive actions; Dial's actions are 9 continuous torques and "
+        "the paper's Dial comparison (figure 6) has no flat PPO, so --flat with Dial PINs is refused: finetune a "
+        "Dial checkpoint with --checkpoint instead."
+    )
+
+
+def _start(args: argparse.Namespace) -> Start:
+    """The pooled options of --checkpoint under a fresh controller, in the checkpoints' world, or with
+    --flat Craft's primitive-action pool."""
     if args.flat:
+        world = _flat_world(args)
+        tasks, labels = _new_tasks(world, args.tasks)
         torch.manual_seed(args.seed)
         policy = primitive_action_pool(tasks, args.hidden_size, args.temperature)
-        return (policy, *make_ocn_pre_post_processors(policy.config))
+        return Start(policy, world, tasks, labels, *make_ocn_pre_post_processors(policy.config))
     loaded = [load_policy(path) for path in args.checkpoint]
     names = [str(path) for path in args.checkpoint]
     sources = [option_source(policy, name) for (policy, _, _), name in zip(loaded, names, strict=True)]
-    for policy in sources:
-        check_craft(policy)
+    world = policy_world(sources[0].config.state_dim, sources[0].config.action_dim, args.mode)
+    tasks, labels = _new_tasks(world, args.tasks)
     torch.manual_seed(args.seed)
     policy = merge_option_pools(sources, tasks, args.temperature, names)
-    return policy, loaded[0][1], loaded[0][2]
+    check_same_normalisation(sources, [preprocessor for _, preprocessor, _ in loaded], names)
+    return Start(policy, world, tasks, labels, loaded[0][1], loaded[0][2])
 
 
 def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     """Everything `ocn-finetune` does; returns the summary it writes to finetune.json."""
     from tqdm import tqdm
 
-    from envs.craft.batch import CraftBatch
-    from envs.craft.world import parse_task_list, task_code, task_description
-    from tools.ppo import PPOConfig, env_tasks, finetune
+    from tools.ppo import Acting, PPOConfig, env_tasks, finetune
 
     _check_args(args)
     torch.set_num_threads(args.threads)
-    parsed = parse_task_list(args.tasks, args.mode)
-    # The env hands the policy canonical descriptions ("get wood, get grass, get iron"): key the new
-    # controller states by them, and label the curve by task code.
-    tasks, labels = [task_description(t) for t in parsed], [task_code(t) for t in parsed]
+    start = _start(args)
+    policy, tasks, labels = start.policy, start.tasks, start.labels
     env_tasks(tasks, args.envs)
     config = PPOConfig(lr=args.lr, epochs=args.epochs, batch_size=args.batch_size, gamma=args.gamma,
                        gae_lambda=args.gae_lambda, clip=args.clip, entropy_coef=args.entropy)
-    policy, preprocessor, postprocessor = _initial_policy(args, tasks)
-    envs = CraftBatch(args.envs, mode=args.mode, reward=args.reward, max_steps=args.max_steps)
+    acting = Acting(start.world.rollouts(), start.preprocessor, start.postprocessor)
+    envs = acting.world.new_batch(args.envs, args.reward, args.max_steps)
 
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
@@ -322,10 +392,10 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
             bar.update(min(row["frames"], args.frames) - bar.n)
             bar.set_postfix(success=f"{row['success']:.2f}", ret=f"{row['mean_return']:.2f}")
 
-        rows = finetune(policy, envs, tasks, args.frames, config, args.seed, record, labels)
+        rows = finetune(policy, envs, acting, tasks, args.frames, config, args.seed, record, labels)
     wall = time.perf_counter() - started
     checkpoint = args.out / "pretrained_model"
-    save_checkpoint(policy, preprocessor, postprocessor, checkpoint)
+    save_checkpoint(policy, start.preprocessor, start.postprocessor, checkpoint)
     if args.flat:
         source = "flat PPO"
     elif policy.config.decoder_latents:
@@ -336,6 +406,7 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     plot_curve(rows, labels, args.out / "curve.png", title)
     summary = {
         "checkpoints": [str(path) for path in args.checkpoint],
+        "world": start.world.name,
         "flat": args.flat,
         "hierarchy": policy.config.hierarchy,
         "temperature": policy.config.temperature,

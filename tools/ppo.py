@@ -3,17 +3,23 @@
 The environment is a semi-MDP whose actions are options: the controller samples an option, the
 option acts alone until its sampled termination fires (or the episode ends), and only then does
 the controller choose again. Rollouts run the policy exactly as it is deployed (`select_action`
-under `execution="hard"`), every env of one `CraftBatch` stepped together, and read the policy's
-`last_step.decided` to know where the controller chose.
+under `execution="hard"`, through the checkpoint's pre- and post-processors, as `lerobot-eval` and
+`ocn-eval` run it), every env of one batch simulator stepped together, and read the policy's
+`last_step.decided` to know where the controller chose. The world (Craft or Dial) enters only
+through `Acting`: its batch simulator's `reset` and `step`, and its `RolloutWorld.env_action`
+(`tools.rollouts`), which turns the postprocessed actions into env actions; the states stored for
+the update are the preprocessed ones the policy saw (on Dial, standardised by the dataset's
+statistics), so the replay sees exactly what the rollout saw.
 
 One PPO transition is one controller decision. Its reward is the discounted sum of the env
 rewards while its option ran, R = sum_k gamma^k r_{t+k}, and the next decision's value is
 discounted by gamma^duration (semi-MDP GAE). The controller is recurrent and its state advances
-only at decisions, so each episode is stored as its sequence of decisions (the compact state at
-the decision and the chosen option) and log-probabilities and values are recomputed over whole
-episodes, from the task's initial controller state, by `replay_controller`; episodes are short
-(at most a few dozen decisions). Old log-probabilities and values come from the same replay with
-the pre-update weights, so the PPO ratio is exactly 1 before the first gradient step.
+only at decisions, so each episode is stored as its sequence of decisions (the policy's input
+state at the decision and the chosen option) and log-probabilities and values are recomputed over
+whole episodes, from the task's initial controller state, by `replay_controller`; OCN's episodes
+are a few dozen decisions at most (MoE's on Dial: one per step, up to the 450-step limit of a
+3-digit PIN). Old log-probabilities and values come from the same replay with the pre-update
+weights, so the PPO ratio is exactly 1 before the first gradient step.
 
 Under `hierarchy="moe"` (the MoE baseline, and the flat baseline built on it in `ocn-finetune
 --flat`) the controller decides at every step, so every option lasts one step: one transition per
@@ -39,10 +45,11 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from envs.craft.batch import CraftBatch
-from envs.craft.lerobot_env import action_indices
+from envs.batching import EpisodeBatch
 from lerobot.utils.constants import OBS_STATE
 from policies.ocn import OCNPolicy
+from tools.episode_parsing import Processor
+from tools.rollouts import RolloutWorld, policy_inputs, step_envs
 
 
 @dataclass
@@ -78,11 +85,26 @@ class ValueHead(nn.Module):
         return self.net(controller_h).squeeze(-1)
 
 
+def _unchanged(data: Any) -> Any:
+    return data
+
+
+@dataclass(frozen=True)
+class Acting:
+    """How the policy meets a world's envs: states go through `preprocessor` into the policy, its
+    actions through `postprocessor` and `world.env_action` into the envs. A policy built in memory
+    (no checkpoint, no dataset statistics) acts through identity processors."""
+
+    world: RolloutWorld
+    preprocessor: Processor = _unchanged
+    postprocessor: Processor = _unchanged
+
+
 @dataclass
 class Decisions:
     """One batch of finished episodes as padded decision sequences.
 
-    state [E, J, S] (compact state where the controller chose), option [E, J], reward [E, J]
+    state [E, J, S] (the preprocessed state where the controller chose), option [E, J], reward [E, J]
     (discounted env reward while that option ran), duration [E, J] (env steps it ran), count [E]
     (decisions per episode; positions >= count are padding), task_index [E] (row of the policy's
     per-task initial controller states), and per-episode totals: return_ [E] (undiscounted),
@@ -116,9 +138,9 @@ def check_finetunable(policy: OCNPolicy) -> None:
 
 @torch.no_grad()
 def collect(
-    policy: OCNPolicy, envs: CraftBatch, tasks: Sequence[str], seeds: Sequence[int], gamma: float
+    policy: OCNPolicy, envs: EpisodeBatch, acting: Acting, tasks: Sequence[str], seeds: Sequence[int], gamma: float
 ) -> Decisions:
-    """Run one episode in every env (env e on map seed seeds[e], task tasks[e]) and record its decisions.
+    """Run one episode in every env (env e on env seed seeds[e], task tasks[e]) and record its decisions.
 
     `tasks` are strings the policy knows (its `config.tasks`); the envs parse them too.
     """
@@ -127,7 +149,7 @@ def collect(
     obs = envs.reset(seeds=list(seeds), tasks=tasks)
     task_index = policy.task_index(tasks, n).cpu().numpy()
     limit = int(envs.max_steps.max())
-    state = np.zeros((n, limit, obs.shape[1]), dtype=obs.dtype)
+    state = np.zeros((n, limit, obs.shape[1]), dtype=np.float32)
     option = np.zeros((n, limit), dtype=np.int64)
     reward_sum = np.zeros((n, limit))
     duration = np.zeros((n, limit), dtype=np.int64)
@@ -137,13 +159,14 @@ def collect(
     policy.reset()
     while not envs.done.all():
         active = ~envs.done
-        action = policy.select_action({OBS_STATE: torch.from_numpy(obs).float(), "task": tasks})
+        inputs = policy_inputs(obs, tasks, acting.preprocessor)
+        action = acting.postprocessor(policy.select_action(inputs))
         decided = np.flatnonzero(policy.last_step.decided.cpu().numpy() & active)
-        state[decided, count[decided]] = obs[decided]
+        state[decided, count[decided]] = inputs[OBS_STATE].cpu().numpy()[decided]
         option[decided, count[decided]] = policy.last_step.option.cpu().numpy()[decided]
         count[decided] += 1
         age[decided] = 0
-        obs, reward, *_ = envs.step(action_indices(action.cpu().numpy()))
+        obs, reward = step_envs(acting.world, envs, action)
         running = np.flatnonzero(active)
         current = count[running] - 1
         reward_sum[running, current] += gamma ** age[running] * reward[running]
@@ -320,7 +343,8 @@ def iteration_row(
 
 def finetune(
     policy: OCNPolicy,
-    envs: CraftBatch,
+    envs: EpisodeBatch,
+    acting: Acting,
     tasks: Sequence[str],
     total_frames: int,
     config: PPOConfig,
@@ -331,19 +355,20 @@ def finetune(
     """PPO until `total_frames` env frames are spent; one iteration = one episode in every env.
 
     Seeds torch (option, termination and action sampling, initial weights of the critic) and the
-    env maps (drawn per iteration from a numpy Generator seeded with `seed`). The learning rate
+    env seeds (Craft's maps, Dial's start poses; drawn per iteration from a numpy Generator seeded
+    with `seed`). The learning rate
     decays linearly with the frames spent. Returns one row per iteration (also passed to
     `on_iteration` as it happens): frames so far, lr, the batch's returns and successes (per task
     under `labels`, default the task strings), PPO stats.
     """
     torch.manual_seed(seed)
-    map_seeds = np.random.default_rng(seed)
+    env_seeds = np.random.default_rng(seed)
     trainer = PPOTrainer(policy, config)
     env_task = env_tasks(tasks, envs.num_envs)
     frames, rows = 0, []
     while frames < total_frames:
         lr = trainer.set_lr_fraction(1.0 - frames / total_frames)
-        batch = collect(policy, envs, env_task, map_seeds.integers(0, 2**31 - 1, envs.num_envs), config.gamma)
+        batch = collect(policy, envs, acting, env_task, env_seeds.integers(0, 2**31 - 1, envs.num_envs), config.gamma)
         frames += int(batch.frames.sum())
         row = {"iteration": len(rows) + 1, "frames": frames, "lr": lr,
                **iteration_row(batch, tasks, env_task, labels or tasks)}

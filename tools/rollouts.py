@@ -18,6 +18,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from envs.batching import EpisodeBatch
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_STATE
 from policies.ocn import OCNPolicy
@@ -44,25 +45,32 @@ class OptionPolicy(Protocol):
 
 @dataclass(frozen=True)
 class RolloutWorld:
-    """What a world contributes to the rollouts.
+    """What a world contributes to the rollouts (and to PPO's, `tools.ppo`).
 
-    `start(tasks, seeds)` returns a fresh batch simulator with one env per task and env seed and its
-    first states [envs, S]; `env_action` turns postprocessed actions [envs, A] (numpy) into what the
-    simulator's `step` takes; `policy_task` names a task as the policy's tasks do.
+    `new_batch(num_envs, reward, max_steps)` makes the world's batch simulator (`max_steps` None:
+    the env's own limits), whose `reset(seeds=..., tasks=...)` takes task strings; `env_action`
+    turns postprocessed actions [envs, A] (numpy) into what the simulator's `step` takes;
+    `policy_task` names a task as the policy's tasks do.
     """
 
-    start: Callable[[Sequence[str], Sequence[int]], tuple[Any, np.ndarray]]
+    new_batch: Callable[[int, str, int | None], EpisodeBatch]
     env_action: Callable[[np.ndarray], np.ndarray]
     policy_task: Callable[[str], str] = str
 
+    def start(self, tasks: Sequence[str], seeds: Sequence[int]) -> tuple[EpisodeBatch, np.ndarray]:
+        """A fresh batch with one env per task and env seed (sparse reward, the env's limits) and its
+        first states [envs, S]."""
+        batch = self.new_batch(len(tasks), "sparse", None)
+        return batch, batch.reset(seeds=list(seeds), tasks=list(tasks))
 
-def _observation(obs: np.ndarray, tasks: Sequence[str], preprocessor: Processor) -> dict[str, Any]:
+
+def policy_inputs(obs: np.ndarray, tasks: Sequence[str], preprocessor: Processor) -> dict[str, Any]:
     """The env's states as float32, with one task string per env, through the preprocessor."""
     return preprocessor({OBS_STATE: torch.from_numpy(obs).float(), "task": list(tasks)})
 
 
-def _step(world: RolloutWorld, batch: Any, action: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """Step every env with the policy's actions; returns the new states and rewards."""
+def step_envs(world: RolloutWorld, batch: EpisodeBatch, action: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Step every env with the policy's postprocessed actions; returns the new states and rewards."""
     obs, reward, *_ = batch.step(world.env_action(action.cpu().numpy()))
     return obs, reward
 
@@ -93,12 +101,12 @@ def free_run_success(
     policy.reset()
     while not batch.done.all():
         active = ~batch.done
-        action = postprocessor(policy.select_action(_observation(obs, named, preprocessor)))
+        action = postprocessor(policy.select_action(policy_inputs(obs, named, preprocessor)))
         if log is not None:
             step = policy.last_step
             trace.add(active=active, state=obs, action=action.cpu().numpy(), p_c=step.p_c.cpu().numpy(),
                       option=step.option.cpu().numpy(), end=step.end.cpu().numpy())
-        obs, reward = _step(world, batch, action)
+        obs, reward = step_envs(world, batch, action)
         if log is not None:
             trace.add(reward=reward, done=batch.done.copy())
     policy.reset()
@@ -138,12 +146,12 @@ def option_subtask_success(
     stopped = np.zeros(len(rows), dtype=bool)
     option_h, step = None, 0
     while not (batch.done | stopped).all():
-        state = _observation(obs, named, preprocessor)[OBS_STATE]
+        state = policy_inputs(obs, named, preprocessor)[OBS_STATE]
         restart = torch.full((len(rows),), step == 0 if length is None else step % length == 0)
         action, option_h, end = policy.act_with_options(state, option, option_h, restart, greedy)
         if length is None and step > 0:
             stopped |= (end.cpu().numpy() > 0.5) & ~batch.done
         step += 1
-        obs, _ = _step(world, batch, postprocessor(action))
+        obs, _ = step_envs(world, batch, postprocessor(action))
     completed = (batch.progress == 1) & ~stopped
     return completed.reshape(n_options, len(subtasks), episodes).mean(axis=2)

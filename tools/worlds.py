@@ -1,10 +1,12 @@
-"""What the evaluation and annotation tools need to know of a dataset's world (Craft or Dial), chosen once per dataset.
+"""What the tools need to know of a world (Craft or Dial), chosen once per dataset or checkpoint.
 
 `ocn-eval`, `ocn-view` and `ocn-annotate` read the world from the dataset
-(`ocn_data.episodes_table.dataset_world`) and get one `World` here: how subtasks are named, which
-subtasks a task string holds, how results name a task, which batched rollouts act in the world and
-which rerun scene draws it. Everything else in those tools is the same code for every world.
-Rollouts and scenes import torch, LeRobot or rerun, so a `World` builds them only when asked.
+(`ocn_data.episodes_table.dataset_world`), `ocn-finetune` from the checkpoint's state and action
+widths (`policy_world`: a finetuned checkpoint has no dataset beside it), and get one `World` here:
+how subtasks are named, which subtasks a task string holds, how results name a task, how a list of
+new tasks is written, which batched rollouts act in the world and which rerun scene draws it.
+Everything else in those tools is the same code for every world. Rollouts and scenes import
+torch, LeRobot or rerun, so a `World` builds them only when asked.
 """
 
 from __future__ import annotations
@@ -30,8 +32,12 @@ class World:
     one-subtask task for the rollouts, entity names) and in full ("A get wood", "press 1": lanes,
     legends); `subtask_names` as the dataset's task strings spell it ("get wood", "press 1":
     annotation segments named by subtask); `task_subtasks` gives the subtask ids of a dataset task
-    string; `task_key` is how results name a task; `rollouts` and `scene` build the world's rollout
-    adapter and rerun scene.
+    string; `task_key` is how results name a task; `parse_task_list` reads a comma-separated list of
+    tasks as a command line writes it ("ADC,CAD", "124,481") into subtask ids, which
+    `task_description` turns into the task string a policy is keyed by and `task_code` into its
+    short label; `state_dim` and `action_dim` are the widths of the policy's `observation.state`
+    and `action` in this world; `rollouts` and `scene` build the world's rollout adapter and rerun
+    scene.
     """
 
     name: str
@@ -40,6 +46,11 @@ class World:
     subtask_names: tuple[str, ...]
     task_subtasks: Callable[[str], tuple[int, ...]]
     task_key: Callable[[str], str]
+    parse_task_list: Callable[[str], list[tuple[int, ...]]]
+    task_description: Callable[[Sequence[int]], str]
+    task_code: Callable[[Sequence[int]], str]
+    state_dim: int
+    action_dim: int
     rollouts: Callable[[], RolloutWorld]
     scene: Callable[[], Scene]
 
@@ -49,12 +60,17 @@ class World:
         return [self.subtask_codes[s] for s in used]
 
 
-def _craft(root: Path) -> World:
-    """Craft in the env mode record_demos' provenance names (paper mode if it names none)."""
-    from envs.craft.world import SUBTASK_LETTERS, SUBTASK_NAMES, parse_task
-
-    sessions = load_provenance(root)["sessions"]
-    mode = sessions[-1]["mode"] if sessions else "paper"
+def craft(mode: str = "paper") -> World:
+    """Craft in world mode `mode` ("paper" or "full")."""
+    from envs.craft.observation import OBS_DIM
+    from envs.craft.world import (
+        SUBTASK_LETTERS,
+        SUBTASK_NAMES,
+        parse_task,
+        parse_task_list,
+        task_code,
+        task_description,
+    )
 
     def rollouts() -> RolloutWorld:
         from tools.craft_rollouts import craft_world
@@ -73,14 +89,21 @@ def _craft(root: Path) -> World:
         subtask_names=SUBTASK_NAMES,
         task_subtasks=lambda task: tuple(parse_task(task, mode)),
         task_key=str,
+        parse_task_list=lambda spec: parse_task_list(spec, mode),
+        task_description=task_description,
+        task_code=task_code,
+        state_dim=OBS_DIM,
+        action_dim=1,
         rollouts=rollouts,
         scene=scene,
     )
 
 
-def _dial(root: Path) -> World:
+def dial() -> World:
     """Dial: a subtask is a digit, a task a PIN, named in results by its digits ("12")."""
-    from envs.dial.task import DIGITS, SUBTASK_NAMES, parse_pin, pin_code
+    from envs.dial.batch import OBS_DIM
+    from envs.dial.scene import N_JOINTS
+    from envs.dial.task import DIGITS, SUBTASK_NAMES, parse_pin, parse_pin_list, pin_code, task_description
 
     def rollouts() -> RolloutWorld:
         from tools.dial_rollouts import DIAL_WORLD
@@ -99,14 +122,38 @@ def _dial(root: Path) -> World:
         subtask_names=SUBTASK_NAMES,
         task_subtasks=parse_pin,
         task_key=lambda task: pin_code(parse_pin(task)),
+        parse_task_list=parse_pin_list,
+        task_description=task_description,
+        task_code=pin_code,
+        state_dim=OBS_DIM,
+        action_dim=N_JOINTS,
         rollouts=rollouts,
         scene=scene,
     )
 
 
-BUILDERS: dict[str, Callable[[Path], World]] = {"craft": _craft, "dial": _dial}
+def _recorded_craft(root: Path) -> World:
+    """Craft in the env mode record_demos' provenance names (paper mode if it names none)."""
+    sessions = load_provenance(root)["sessions"]
+    return craft(sessions[-1]["mode"] if sessions else "paper")
+
+
+BUILDERS: dict[str, Callable[[Path], World]] = {"craft": _recorded_craft, "dial": lambda root: dial()}
 
 
 def world_of(root: Path) -> World:
     """The `World` of the dataset at `root`; a dataset of another world is a ValueError."""
     return BUILDERS[dataset_world(root)](Path(root))
+
+
+def policy_world(state_dim: int, action_dim: int, mode: str = "paper") -> World:
+    """The world whose states and actions have these widths (a policy's `state_dim` and `action_dim`;
+    Craft in world mode `mode`); widths of no world are a ValueError."""
+    for build in (lambda: craft(mode), dial):
+        world = build()
+        if (world.state_dim, world.action_dim) == (state_dim, action_dim):
+            return world
+    raise ValueError(
+        f"no world has {state_dim}-float states and {action_dim}-float actions (Craft: {craft(mode).state_dim} "
+        f"and 1 action index; Dial: {dial().state_dim} and {dial().action_dim} motor controls)."
+    )

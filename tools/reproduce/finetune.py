@@ -29,7 +29,7 @@ import numpy as np
 from tools import console_script
 from tools.bench import RESULTS
 from tools.reproduce import imitation
-from tools.reproduce.report import checks_table, provenance
+from tools.reproduce.report import checks_table, over_seeds, provenance, write_result_files
 from tools.reproduce.runs import TrainedRun, TrainSettings, record_dataset, train_policy
 
 GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
@@ -113,10 +113,10 @@ def finetune_command(args: argparse.Namespace, setting: Setting, method: Method,
     return command + [word for run in clones for word in ("--checkpoint", str(run.checkpoint))]
 
 
-def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, reward: str, seed: int) -> dict[str, Any]:
-    """Clone (unless done), finetune (unless done) and read back one run's curve."""
+def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, reward: str, seed: int,
+                 clones: list[TrainedRun]) -> dict[str, Any]:
+    """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve."""
     out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}" / f"seed{seed}"
-    clones = clone(args, setting, method, seed) if method.overrides is not None else []
     command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
     shown = " ".join(Path(word).name if word.startswith("/") else word for word in command)
     summary_path, command_path = out / "run" / "finetune.json", out / "finetune_command.txt"
@@ -151,10 +151,12 @@ def at_budget(run: dict[str, Any], labels: list[str]) -> dict[str, float]:
     return {key: float(np.mean([row[key] for row in last])) for key in keys}
 
 
-def summarise(runs: list[dict[str, Any]], labels: list[str]) -> dict[str, dict[str, Any]]:
-    """Per method and reward: the value at the budget (mean and std over seeds) and the mean curve."""
+def summarise(runs: list[dict[str, Any]], labels: list[str],
+              methods: tuple[Method, ...] = METHODS) -> dict[str, dict[str, Any]]:
+    """Per method and reward: the value at the budget (mean and std over seeds) and the curves over
+    seeds (mean, std, min and max on a common env-frame grid)."""
     summary: dict[str, dict[str, Any]] = {}
-    for method in METHODS:
+    for method in methods:
         for reward in REWARDS:
             mine = [run for run in runs if run["method"] == method.name and run["reward"] == reward]
             if not mine:
@@ -165,7 +167,7 @@ def summarise(runs: list[dict[str, Any]], labels: list[str]) -> dict[str, dict[s
             for key in ("mean_return", "success", *(f"success[{label}]" for label in labels)):
                 values = np.array([np.interp(grid, [r["frames"] for r in run["curve"]], [r[key] for r in run["curve"]])
                                    for run in mine])
-                curves[key] = {"mean": values.mean(0).round(4).tolist(), "std": values.std(0).round(4).tolist()}
+                curves[key] = over_seeds(values)
             summary[f"{method.name} | {reward}"] = {
                 "method": method.name, "reward": reward, "seeds": [run["seed"] for run in mine],
                 "at_budget": {key: {"mean": float(np.mean([f[key] for f in finals])),
@@ -177,56 +179,60 @@ def summarise(runs: list[dict[str, Any]], labels: list[str]) -> dict[str, dict[s
     return summary
 
 
+def budget_value(summary: dict[str, dict[str, Any]], method: str, reward: str, key: str) -> float | None:
+    """A method's mean over seeds at the budget of one curve entry under one reward (None if it did not run)."""
+    row = summary.get(f"{method} | {reward}")
+    return None if row is None else row["at_budget"][key]["mean"]
+
+
 def must_show(setting: Setting, summary: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     """The issue's checks for this setting, each with its measured values and whether it holds."""
     labels, checks = task_labels(setting), []
 
-    def value(method: str, reward: str, key: str) -> float | None:
-        row = summary.get(f"{method} | {reward}")
-        return None if row is None else row["at_budget"][key]["mean"]
-
-    ocn_sparse = [value("OCN", "sparse", f"success[{label}]") for label in labels]
+    ocn_sparse = [budget_value(summary, "OCN", "sparse", f"success[{label}]") for label in labels]
     if None not in ocn_sparse:
         bar = 0.9 if setting.name == "s1" else 0.8
         checks.append({"check": f"OCN, sparse: success >= {bar} on each of {', '.join(labels)}",
                        "value": min(ocn_sparse), "holds": min(ocn_sparse) >= bar})
         for other in BASELINES:
-            theirs = value(other, "sparse", "success")
+            theirs = budget_value(summary, other, "sparse", "success")
             if theirs is not None:
-                ours = value("OCN", "sparse", "success")
+                ours = budget_value(summary, "OCN", "sparse", "success")
                 checks.append({"check": f"sparse: {other}'s mean success below OCN's ({ours:.3f})",
                                "value": theirs, "holds": theirs < ours})
-    ours = value("OCN", "dense", "mean_return")
-    baselines = [v for v in (value(m, "dense", "mean_return") for m in BASELINES) if v is not None]
+    ours = budget_value(summary, "OCN", "dense", "mean_return")
+    baselines = [v for v in (budget_value(summary, m, "dense", "mean_return") for m in BASELINES) if v is not None]
     if ours is not None and baselines and setting.name == "s1":
         checks.append({"check": "dense: OCN's return at least twice the best baseline's",
                        "value": ours / max(max(baselines), 1e-9), "holds": ours >= 2 * max(baselines)})
     return checks
 
 
-def plot(setting: Setting, summary: dict[str, dict[str, Any]], path: Path) -> None:
-    """Curves like the paper's figures 4-5: one row per reward, success per task and the mean return,
-    each method's mean over seeds with a band of one standard deviation."""
+def plot(summary: dict[str, dict[str, Any]], methods: tuple[Method, ...], labels: list[str], band: str,
+         title: str, path: Path) -> None:
+    """Curves like the paper's figures 4-6: one row per reward, success per task and the mean return,
+    each method's mean over seeds with a band (`band` "std": one standard deviation; "min-max")."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.ticker import EngFormatter
 
-    labels = task_labels(setting)
     keys = [*(f"success[{label}]" for label in labels), "mean_return"]
     rewards = [reward for reward in REWARDS if any(row["reward"] == reward for row in summary.values())]
     fig, axes = plt.subplots(len(rewards), len(keys), figsize=(3.2 * len(keys), 2.9 * len(rewards)), squeeze=False)
     for r, reward in enumerate(rewards):
         for c, key in enumerate(keys):
             ax = axes[r][c]
-            for k, method in enumerate(METHODS):
+            for k, method in enumerate(methods):
                 row = summary.get(f"{method.name} | {reward}")
                 if row is None:
                     continue
-                mean, std = np.array(row["curves"][key]["mean"]), np.array(row["curves"][key]["std"])
-                ax.plot(row["curve_frames"], mean, color=f"C{k}", label=method.name)
-                ax.fill_between(row["curve_frames"], mean - std, mean + std, color=f"C{k}", alpha=0.2)
+                curve = {stat: np.array(values) for stat, values in row["curves"][key].items()}
+                low, high = ((curve["mean"] - curve["std"], curve["mean"] + curve["std"]) if band == "std"
+                             else (curve["min"], curve["max"]))
+                ax.plot(row["curve_frames"], curve["mean"], color=f"C{k}", label=method.name)
+                ax.fill_between(row["curve_frames"], low, high, color=f"C{k}", alpha=0.2)
             ax.set_title(f"{reward}: {key.replace('success[', 'success ').rstrip(']')}", fontsize=9)
             ax.xaxis.set_major_formatter(EngFormatter())
             ax.grid(alpha=0.3)
@@ -234,7 +240,7 @@ def plot(setting: Setting, summary: dict[str, dict[str, Any]], path: Path) -> No
                 ax.set_ylim(-0.02, 1.02)
     axes[0][0].legend(fontsize=8)
     fig.supxlabel("env frames")
-    fig.suptitle(f"Finetuning in Craft {setting.name.upper()} ({setting.tasks}): mean and std over seeds")
+    fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -265,10 +271,20 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         "## At the budget",
         "",
-        "| method | reward | seeds | mean return | success | " + " | ".join(labels) + " | PPO frames/s |",
-        "|---|---|---|---|---|" + "---|" * len(labels) + "---|",
+        *budget_table(result["summary"], labels),
+        "",
+        f"Curves: `finetune_{setting.name}.png`.",
+        "",
     ]
-    for row in result["summary"].values():
+    return "\n".join(lines)
+
+
+def budget_table(summary: dict[str, dict[str, Any]], labels: list[str]) -> list[str]:
+    """Markdown table lines: per method and reward, mean (std) over seeds at the budget of the return
+    and the success, overall and per task, and the PPO throughput."""
+    lines = ["| method | reward | seeds | mean return | success | " + " | ".join(labels) + " | PPO frames/s |",
+             "|---|---|---|---|---|" + "---|" * len(labels) + "---|"]
+    for row in summary.values():
         b = row["at_budget"]
 
         def cell(key: str) -> str:
@@ -277,8 +293,7 @@ def markdown(result: dict[str, Any]) -> str:
         per_task = " | ".join(cell(f"success[{label}]") for label in labels)
         lines.append(f"| {row['method']} | {row['reward']} | {len(row['seeds'])} | {cell('mean_return')} | "
                      f"{cell('success')} | {per_task} | {row['frames_per_s']:.0f} |")
-    lines += ["", f"Curves: `finetune_{setting.name}.png`.", ""]
-    return "\n".join(lines)
+    return lines
 
 
 def write_results(args: argparse.Namespace, setting: Setting, runs: list[dict[str, Any]], planned: int,
@@ -295,11 +310,9 @@ def write_results(args: argparse.Namespace, setting: Setting, runs: list[dict[st
         "runs": [{key: value for key, value in run.items() if key != "curve"} for run in runs],
         "wall_s": round(wall_s, 1),
     }
-    args.results.mkdir(parents=True, exist_ok=True)
-    stem = args.results / f"finetune_{setting.name}"
-    stem.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
-    stem.with_suffix(".md").write_text(markdown(result))
-    plot(setting, summary, stem.with_suffix(".png"))
+    stem = write_result_files(args.results, f"finetune_{setting.name}", result, markdown(result))
+    title = f"Finetuning in Craft {setting.name.upper()} ({setting.tasks}): mean and std over seeds"
+    plot(summary, METHODS, task_labels(setting), "std", title, stem.with_suffix(".png"))
     return result
 
 
@@ -307,20 +320,37 @@ def reproduce(args: argparse.Namespace) -> int:
     """Every planned run in turn, seeds innermost last so that each method's first seed comes early."""
     started = time.perf_counter()
     setting = SETTINGS[args.experiment]
-    known = {method.key: method for method in METHODS}
-    unknown = sorted(set(args.methods) - set(known)) + sorted(set(args.rewards) - set(REWARDS))
-    if unknown:
-        raise SystemExit(f"ocn-reproduce: unknown method or reward {unknown}; methods are {sorted(known)}, "
-                         f"rewards {list(REWARDS)}.")
-    methods = [known[key] for key in args.methods]
+    methods = chosen_methods(args, METHODS)
     planned = [(m, reward, seed) for seed in range(1, args.seeds + 1) for m in methods for reward in args.rewards]
     runs: list[dict[str, Any]] = []
     result: dict[str, Any] = {}
     for method, reward, seed in planned:
-        runs.append(finetune_run(args, setting, method, reward, seed))
+        clones = clone(args, setting, method, seed) if method.overrides is not None else []
+        runs.append(finetune_run(args, setting, method, reward, seed, clones))
         result = write_results(args, setting, runs, len(planned), time.perf_counter() - started)
     print(markdown(result))
     return 0
+
+
+def chosen_methods(args: argparse.Namespace, methods: tuple[Method, ...]) -> list[Method]:
+    """The methods --methods names, in its order; an unknown method or reward ends the command."""
+    known = {method.key: method for method in methods}
+    unknown = sorted(set(args.methods) - set(known)) + sorted(set(args.rewards) - set(REWARDS))
+    if unknown:
+        raise SystemExit(f"ocn-reproduce: unknown method or reward {unknown}; methods are {sorted(known)}, "
+                         f"rewards {list(REWARDS)}.")
+    return [known[key] for key in args.methods]
+
+
+def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Method, ...], frames: int) -> None:
+    """The options of a finetuning study's PPO runs: seeds, budget, envs, rewards and methods."""
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--frames", type=int, default=frames, help="env frames per PPO run (the budget)")
+    parser.add_argument("--envs", type=int, default=64, help="envs stepped together in PPO")
+    parser.add_argument("--rewards", type=lambda s: s.split(","), default=list(REWARDS),
+                        help="comma-separated: sparse,dense")
+    parser.add_argument("--methods", type=lambda s: s.split(","), default=",".join(m.key for m in methods),
+                        help="comma-separated: " + ",".join(m.key for m in methods))
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -329,13 +359,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         parser = sub.add_parser(name, help=f"finetuning on {setting.tasks} over skills cloned from "
                                 f"{' and '.join(t for _, t in setting.demos)}",
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-        parser.add_argument("--seeds", type=int, default=3)
-        parser.add_argument("--frames", type=int, default=300_000, help="env frames per PPO run (the budget)")
-        parser.add_argument("--envs", type=int, default=64, help="envs stepped together in PPO")
-        parser.add_argument("--rewards", type=lambda s: s.split(","), default=list(REWARDS),
-                            help="comma-separated: sparse,dense")
-        parser.add_argument("--methods", type=lambda s: s.split(","), default=",".join(m.key for m in METHODS),
-                            help="comma-separated: " + ",".join(m.key for m in METHODS))
+        add_finetune_arguments(parser, METHODS, 300_000)
         imitation.add_training_arguments(parser)
         parser.add_argument("--results", type=Path, default=RESULTS)
         parser.set_defaults(func=reproduce)

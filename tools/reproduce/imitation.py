@@ -9,8 +9,6 @@ with plots. Finished runs are reused, so an interrupted reproduction continues w
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,11 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from tools import console_script
 from tools.bench import RESULTS
 
-from tools.reproduce.report import checks_table, provenance
-from tools.reproduce.runs import TrainSettings, record_dataset, train_policy
+from tools.reproduce.report import checks_table, provenance, write_result_files
+from tools.reproduce.runs import TrainSettings, evaluate_run, record_dataset, train_policy
 
 S1_TASKS = "AC,CD,DA"
 S1_REPO_ID = "local/craft_s1"
@@ -70,31 +67,8 @@ def run_dir(workdir: Path, variant: Variant, seed: int) -> Path:
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:
     """Train (unless done before) and evaluate one seed of one variant; returns its record."""
     folder = run_dir(args.workdir, variant, seed)
-    record_path = folder / "record.json"
     trained = train_policy(train_settings(args), data, S1_REPO_ID, folder, seed, variant.overrides)
-    if record_path.exists():
-        return json.loads(record_path.read_text())
-    eval_json = folder / "eval.json"
-    started = time.perf_counter()
-    subprocess.run(
-        [console_script("ocn-eval"), "--policy", str(trained.checkpoint), "--root", str(data), "--repo-id", S1_REPO_ID,
-         "--split", "val", "--out", str(eval_json), "--rollouts", str(args.rollouts)],
-        check=True,
-    )
-    from tools.parsing_metrics import option_table_summary
-
-    scores = json.loads(eval_json.read_text())
-    scores.update(option_table_summary(np.array(scores["option_subtask_success"]["table"])))
-    record = {
-        "variant": variant.name,
-        "seed": seed,
-        "train_wall_s": trained.train_wall_s,
-        "eval_wall_s": round(time.perf_counter() - started, 1),
-        "train_command": trained.command,
-        "scores": scores,
-    }
-    record_path.write_text(json.dumps(record, indent=2) + "\n")
-    return record
+    return evaluate_run(folder, trained, data, S1_REPO_ID, args.rollouts, {"variant": variant.name, "seed": seed})
 
 
 def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -230,10 +204,8 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
         "runs": records,
         "wall_s": round(wall_s, 1),
     }
-    args.results.mkdir(parents=True, exist_ok=True)
-    (args.results / "imitation_s1.json").write_text(json.dumps(result, indent=2) + "\n")
-    (args.results / "imitation_s1.md").write_text(markdown(result))
-    plot(records, args.results / "imitation_s1.png")
+    stem = write_result_files(args.results, "imitation_s1", result, markdown(result))
+    plot(records, stem.with_suffix(".png"))
     first = run_dir(args.workdir, VARIANTS[0], 1) / "eval.png"
     if first.exists():
         (args.results / "imitation_s1_option_table.png").write_bytes(first.read_bytes())
@@ -252,17 +224,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.set_defaults(func=imitation_s1)
 
 
-def add_training_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of the S1 data and of its `lerobot-train` runs, shared by every study that trains on S1."""
+def add_training_arguments(
+    parser: argparse.ArgumentParser, batch_size: int = 128, window_size: int = 24, episodes_per_task: int = 6000,
+    window_help: str = "longest episode a window holds", episodes_help: str = "the paper's 6000",
+) -> None:
+    """Options of a study's data and of its `lerobot-train` runs, shared by every study that trains
+    (defaults: S1's; Dial passes its own)."""
     parser.add_argument("--steps", type=int, default=5000, help="lerobot-train steps per run")
-    parser.add_argument("--batch-size", type=int, default=128, help="windows (episodes) per step")
-    parser.add_argument("--window-size", type=int, default=24, help="longest episode a window holds")
+    parser.add_argument("--batch-size", type=int, default=batch_size, help="windows (episodes) per step")
+    parser.add_argument("--window-size", type=int, default=window_size, help=window_help)
     parser.add_argument("--controller-lr-scale", type=float, default=1.0,
                         help="controller learning rate / the options' (see OCNConfig.controller_lr_scale)")
     parser.add_argument("--num-workers", type=int, default=2, help="lerobot-train data workers")
     parser.add_argument("--threads", type=int, default=1, help="math threads of each process")
-    parser.add_argument("--episodes-per-task", type=int, default=6000,
-                        help="demonstrations recorded per task (the paper's 6000; 80/20 train/val split)")
+    parser.add_argument("--episodes-per-task", type=int, default=episodes_per_task,
+                        help=f"demonstrations recorded per task ({episodes_help}; 80/20 train/val split)")
     parser.add_argument("--data-seed", type=int, default=0, help="record_demos seed of the demonstrations")
     parser.add_argument("--workdir", type=Path, default=Path("outputs/reproduce"),
                         help="where datasets and runs live; finished runs and datasets there are reused")

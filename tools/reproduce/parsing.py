@@ -45,7 +45,7 @@ from ocn_data.episodes_table import EpisodeArrays, load_episodes, split_episodes
 from tools.bench import RESULTS
 from tools.reproduce import finetune, imitation
 from tools.reproduce.finetune import Method
-from tools.reproduce.report import checks_table, provenance
+from tools.reproduce.report import checks_table, over_seeds, provenance, write_result_files
 from tools.reproduce.runs import TrainSettings, train_policy
 
 METRICS = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "task alignment", "nmi": "NMI"}
@@ -192,8 +192,7 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
                 curves[metric] = final[metric] = None
                 continue
             values = np.array([[row[metric] for row in run["checkpoints"]] for run in mine])
-            curves[metric] = {stat: getattr(values, stat)(0).round(4).tolist()
-                              for stat in ("mean", "std", "min", "max")}
+            curves[metric] = over_seeds(values)
             final[metric] = {"mean": float(values[:, -1].mean()), "std": float(values[:, -1].std())}
         summary[method.name] = {"seeds": [run["seed"] for run in mine], "steps": steps, "curves": curves,
                                 "final": final}
@@ -349,10 +348,7 @@ def write_results(args: argparse.Namespace, runs: list[dict[str, Any]], planned:
         "runs": runs,
         "wall_s": round(wall_s, 1),
     }
-    args.results.mkdir(parents=True, exist_ok=True)
-    stem = args.results / "parsing_s1"
-    stem.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
-    stem.with_suffix(".md").write_text(markdown(result))
+    stem = write_result_files(args.results, "parsing_s1", result, markdown(result))
     plot(summary, stem.with_suffix(".png"))
     return result
 

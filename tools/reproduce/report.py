@@ -1,12 +1,16 @@
-"""What the reproductions' results files share: where they came from, and their checks table."""
+"""What the reproductions' results files share: where they came from, their checks table, curves
+summarised over seeds, and how they are written."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from tools.bench import machine
 
@@ -32,3 +36,19 @@ def checks_table(checks: list[dict[str, Any]]) -> list[str]:
         holds = "n/a" if check["holds"] is None else "yes" if check["holds"] else "NO"
         lines.append(f"| {check['check']} | {value} | {holds} |")
     return lines
+
+
+def over_seeds(values: np.ndarray) -> dict[str, list[float]]:
+    """Mean, std, min and max over seeds of curves [seeds, points] sampled at the same points, for
+    the mean line and the band (one std or min-max) of a study's plot."""
+    return {stat: getattr(values, stat)(0).round(4).tolist() for stat in ("mean", "std", "min", "max")}
+
+
+def write_result_files(results: Path, name: str, result: dict[str, Any], text: str) -> Path:
+    """`results/NAME.json` (the result) and `results/NAME.md` (its Markdown `text`); returns the
+    path stem `results/NAME`, beside which a study puts its plots."""
+    results.mkdir(parents=True, exist_ok=True)
+    stem = results / name
+    stem.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
+    stem.with_suffix(".md").write_text(text)
+    return stem

@@ -13,15 +13,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from tools import console_script
 
 SAVE_EVERY = 1000  # lerobot-train checkpoints this often by default, so a stopped run resumes from its last one
 
 
-def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int, seed: int) -> None:
-    """Record Craft demonstrations of `tasks` (comma-separated) unless `root` already holds exactly
-    that dataset; a dataset recorded with other settings is refused (`check_recorded_as`)."""
-    arguments = ["--env", "craft", "--tasks", tasks, "--episodes-per-task", str(episodes_per_task),
+def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int, seed: int, env: str = "craft") -> None:
+    """Record demonstrations of `tasks` (comma-separated: Craft tasks, or Dial PINs with env "dial")
+    unless `root` already holds exactly that dataset; a dataset recorded with other settings is
+    refused (`check_recorded_as`)."""
+    arguments = ["--env", env, "--tasks", tasks, "--episodes-per-task", str(episodes_per_task),
                  "--root", str(root), "--repo-id", repo_id, "--seed", str(seed)]
     if (root / "meta" / "info.json").exists():
         check_recorded_as(root, arguments)
@@ -110,6 +113,35 @@ def train_policy(
     check_reusable(run_dir, shown)
     wall = train(settings, command, shown, run_dir)
     return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall)
+
+
+def evaluate_run(folder: Path, trained: TrainedRun, data: Path, repo_id: str, rollouts: int,
+                 labels: dict[str, Any]) -> dict[str, Any]:
+    """`ocn-eval` of a trained run on the validation split, with the option table read
+    (`option_table_summary`), kept as the run's `record.json` (under `labels`, e.g. its variant and
+    seed) and reused from there once written."""
+    from tools.parsing_metrics import option_table_summary
+
+    record_path, eval_json = folder / "record.json", folder / "eval.json"
+    if record_path.exists():
+        return json.loads(record_path.read_text())
+    started = time.perf_counter()
+    subprocess.run(
+        [console_script("ocn-eval"), "--policy", str(trained.checkpoint), "--root", str(data), "--repo-id", repo_id,
+         "--split", "val", "--out", str(eval_json), "--rollouts", str(rollouts)],
+        check=True,
+    )
+    scores = json.loads(eval_json.read_text())
+    scores.update(option_table_summary(np.array(scores["option_subtask_success"]["table"])))
+    record = {
+        **labels,
+        "train_wall_s": trained.train_wall_s,
+        "eval_wall_s": round(time.perf_counter() - started, 1),
+        "train_command": trained.command,
+        "scores": scores,
+    }
+    record_path.write_text(json.dumps(record, indent=2) + "\n")
+    return record
 
 
 def _trained_steps(train_dir: Path) -> int:

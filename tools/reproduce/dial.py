@@ -1,0 +1,222 @@
+"""`ocn-reproduce dial`: skills cloned from 2-digit PINs, reused by PPO on 3-digit PINs (paper
+section 4.2, figure 6).
+
+Records (or reuses) expert demonstrations of every 2-digit PIN over the paper's digits S = (1, 2,
+4, 8) (`record_demos --env dial`: the 12 PINs with no digit repeated, as the env draws random PINs,
+`--episodes-per-task` each, with the recorder's DART noise), so that every task appears equally
+often in both splits and every ordered pair of digits is demonstrated. For each seed it clones OCN
+(4 options, one per digit of S; T = 10) and the MoE baseline (the same network with
+`hierarchy="moe"`) with `lerobot-train` (identity encoder, continuous actions, episode windows of
+`--window-size` frames whose few longer episodes train on their first window), scores each OCN
+clone with `ocn-eval` on the validation split (F1@1, NMI, free-run success on the 2-digit PINs,
+option x digit table), then finetunes a fresh controller over each clone's frozen options with
+`ocn-finetune` on the 3-digit PINs of `--tasks`, under the sparse and the dense reward, every run
+on the same env-frame budget. The paper compares OCN with OMPN and MoE; OMPN has no option pool to
+finetune, and flat PPO over 9 continuous torques is not in its figure, so MoE is the baseline here.
+
+The default finetuning PINs, 124, 481 and 842: three tasks as in figure 6; no digit directly
+follows itself (as the env's random PINs: the demonstrations never press one key twice in a row);
+each starts on a different digit, all four digits are used, and the three hold six different
+ordered digit pairs, so no two tasks share a transition and each must chain its own three skills.
+
+Writes results/dial.json (provenance, every run, the imitation scores per seed, the finetuning
+summary and curves, the checks), results/dial.md (the checks with measured values, the imitation
+table, the values at the budget) and results/dial.png (figure 6's form: success per PIN and the
+mean return against env frames, each method's mean over seeds with its min-max band), rewritten
+after every finished run. The checks: OCN imitation F1@1 >= 0.9, NMI >= 0.8 and 2-digit success
+>= 0.8 (means over seeds); OCN's 3-digit success under the sparse reward >= 0.7 at the budget, and
+above MoE's. Datasets, trained runs, their scores and finetuning runs are reused, so an interrupted
+reproduction continues; a run folder made with other settings is refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from envs.dial.task import DEFAULT_DIGITS, parse_pin_list, pin_code
+from tools.bench import RESULTS
+from tools.reproduce import finetune, imitation
+from tools.reproduce.finetune import Method, Setting
+from tools.reproduce.report import checks_table, provenance, write_result_files
+from tools.reproduce.runs import TrainedRun, TrainSettings, evaluate_run, record_dataset, train_policy
+
+DATA = "dial2"
+REPO_ID = f"local/{DATA}"
+TWO_DIGIT_PINS = ",".join(pin_code((a, b)) for a in DEFAULT_DIGITS for b in DEFAULT_DIGITS if a != b)
+N_OPTIONS = len(DEFAULT_DIGITS)
+FINETUNE_PINS = "124,481,842"
+_FINETUNED = {method.key: method for method in finetune.METHODS}
+METHODS = (_FINETUNED["ocn"], _FINETUNED["moe"])
+# `--policy.*` values every Dial clone trains with (README, "OCN on Dial").
+DIAL_POLICY = {"obs_encoder": "identity", "action_type": "continuous", "skip_long_episodes": "true"}
+# Imitation scores of the OCN clones reported per seed, with their column names.
+SCORES = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "align", "nmi": "NMI",
+          "mean_success_rate": "2-digit success", "diagonal_mean": "option x digit diagonal"}
+
+
+def train_settings(args: argparse.Namespace) -> TrainSettings:
+    """The clones' `lerobot-train` settings from the command line."""
+    return TrainSettings(args.steps, args.batch_size, args.window_size, args.num_workers, args.threads,
+                         {"controller_lr_scale": args.controller_lr_scale, **DIAL_POLICY})
+
+
+def dial_data(args: argparse.Namespace) -> Path:
+    """The 2-digit demonstrations in the workdir, recorded on first use."""
+    data = args.workdir / DATA
+    record_dataset(data, TWO_DIGIT_PINS, REPO_ID, args.episodes_per_task, args.data_seed, env="dial")
+    return data
+
+
+def clone_dir(workdir: Path, method: Method, seed: int) -> Path:
+    return workdir / "clone" / DATA / method.key / f"seed{seed}"
+
+
+def clone(args: argparse.Namespace, data: Path, method: Method, seed: int) -> TrainedRun:
+    """The method's behaviour-cloned checkpoint for one seed (trained unless done before)."""
+    overrides = {"n_options": N_OPTIONS, "temperature": 10.0, **(method.overrides or {})}
+    return train_policy(train_settings(args), data, REPO_ID, clone_dir(args.workdir, method, seed), seed, overrides)
+
+
+def imitation_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """Mean and std over seeds of each imitation score, and the lowest 2-digit success of any PIN."""
+    if not records:
+        return {}
+    values = {key: np.array([r["scores"][key] for r in records], dtype=float) for key in SCORES}
+    return {
+        "seeds": [r["seed"] for r in records],
+        **{key: {"mean": float(v.mean()), "std": float(v.std())} for key, v in values.items()},
+        "success_rate_min": float(min(min(r["scores"]["success_rate"].values()) for r in records)),
+    }
+
+
+def must_show(imitated: dict[str, Any], summary: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The issue's checks, each with the measured value and whether it holds; a check whose runs
+    have not finished yet is left out."""
+    checks = []
+    if imitated:
+        for key, bar in (("f1_tol1", 0.9), ("nmi", 0.8), ("mean_success_rate", 0.8)):
+            value = imitated[key]["mean"]
+            checks.append({"check": f"OCN imitation: {SCORES[key]} >= {bar}", "value": value, "holds": value >= bar})
+    ours = finetune.budget_value(summary, "OCN", "sparse", "success")
+    if ours is not None:
+        checks.append({"check": "OCN, sparse: 3-digit success >= 0.7", "value": ours, "holds": ours >= 0.7})
+        theirs = finetune.budget_value(summary, "MoE", "sparse", "success")
+        if theirs is not None:
+            checks.append({"check": f"sparse: MoE's 3-digit success below OCN's ({ours:.3f}) at the same budget",
+                           "value": theirs, "holds": theirs < ours})
+    return checks
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The human-readable results file."""
+    settings = result["settings"]
+    labels = settings["tasks"].split(",")
+    lines = [
+        f"# Dial: skills from 2-digit PINs, finetuned on {', '.join(labels)}",
+        "",
+        f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
+        f"{result['date']}. Demonstrations: the 12 two-digit PINs over 1, 2, 4, 8, "
+        f"{settings['episodes_per_task']} each; clones: `lerobot-train`, {settings['steps']} steps of "
+        f"{settings['batch_size']} windows of {settings['window_size']} frames, {N_OPTIONS} options, T = 10; "
+        f"imitation scores: `ocn-eval` on the validation split ({settings['rollouts']} env episodes per PIN and "
+        f"per option-table cell); finetuning: `ocn-finetune`, {settings['frames']} env frames per run, "
+        f"{settings['envs']} envs. Values at the budget are the mean of each run's last {finetune.FINAL_ROWS} PPO "
+        f"iterations, then mean (std) over seeds. Runs finished: {result['runs_finished']} of "
+        f"{result['runs_planned']}; wall time of this invocation {result['wall_s'] / 60:.0f} min.",
+        "",
+        "## Checks",
+        "",
+        *checks_table(result["must_show"]),
+        "",
+        "## Imitation: OCN clones on the validation split",
+        "",
+        "| seed | " + " | ".join(SCORES.values()) + " | success per PIN | train s |",
+        "|---|" + "---|" * len(SCORES) + "---|---|",
+    ]
+    for record in result["imitation"]:
+        scores = record["scores"]
+        per_pin = ", ".join(f"{pin} {rate:.2f}" for pin, rate in scores["success_rate"].items())
+        cells = " | ".join(f"{scores[key]:.3f}" for key in SCORES)
+        lines.append(f"| {record['seed']} | {cells} | {per_pin} | {record['train_wall_s']} |")
+    lines += [
+        "",
+        "## Finetuning at the budget",
+        "",
+        *finetune.budget_table(result["summary"], labels),
+        "",
+        "Curves: `dial.png` (mean and min-max over seeds).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def write_results(args: argparse.Namespace, imitated: list[dict[str, Any]], runs: list[dict[str, Any]],
+                  planned: int, wall_s: float) -> dict[str, Any]:
+    """`results/dial.{json,md,png}` from the runs finished so far."""
+    labels = args.tasks.split(",")
+    summary = finetune.summarise(runs, labels, METHODS)
+    imitation_scores = imitation_summary(imitated)
+    result = {
+        **provenance(args),
+        "runs_finished": len(runs),
+        "runs_planned": planned,
+        "imitation": imitated,
+        "imitation_summary": imitation_scores,
+        "summary": summary,
+        "must_show": must_show(imitation_scores, summary),
+        "runs": [{key: value for key, value in run.items() if key != "curve"} for run in runs],
+        "wall_s": round(wall_s, 1),
+    }
+    stem = write_result_files(args.results, "dial", result, markdown(result))
+    if summary:
+        title = f"Finetuning in Dial ({args.tasks}) over skills from 2-digit PINs: mean and min-max over seeds"
+        finetune.plot(summary, METHODS, labels, "min-max", title, stem.with_suffix(".png"))
+    return result
+
+
+def reproduce_dial(args: argparse.Namespace) -> int:
+    """Every planned run in turn, seed by seed: clone each method, score OCN's clone, finetune it
+    under each reward; the results files are rewritten after every finetuning run."""
+    started = time.perf_counter()
+    args.tasks = ",".join(pin_code(pin) for pin in parse_pin_list(args.tasks))
+    methods = finetune.chosen_methods(args, METHODS)
+    setting = Setting("dial", ((DATA, TWO_DIGIT_PINS),), N_OPTIONS, args.tasks)
+    data = dial_data(args)
+    planned = len(methods) * len(args.rewards) * args.seeds
+    imitated: list[dict[str, Any]] = []
+    runs: list[dict[str, Any]] = []
+    result: dict[str, Any] = {}
+    for seed in range(1, args.seeds + 1):
+        for method in methods:
+            trained = clone(args, data, method, seed)
+            if method.key == "ocn":
+                folder = clone_dir(args.workdir, method, seed)
+                imitated.append(evaluate_run(folder, trained, data, REPO_ID, args.rollouts,
+                                             {"method": method.name, "seed": seed}))
+            for reward in args.rewards:
+                runs.append(finetune.finetune_run(args, setting, method, reward, seed, [trained]))
+                result = write_results(args, imitated, runs, planned, time.perf_counter() - started)
+    print(markdown(result))
+    return 0
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """The `dial` subcommand."""
+    parser = sub.add_parser("dial", help="Dial: OCN and MoE cloned from 2-digit PINs, finetuned on 3-digit PINs",
+                            formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    finetune.add_finetune_arguments(parser, METHODS, 500_000)
+    parser.add_argument("--tasks", default=FINETUNE_PINS, help="comma-separated PINs to finetune on")
+    parser.add_argument("--rollouts", type=int, default=100,
+                        help="ocn-eval env episodes per 2-digit PIN and per option-table cell")
+    imitation.add_training_arguments(
+        parser, batch_size=32, window_size=120, episodes_per_task=500,
+        window_help="frames per episode window; longer episodes (under 2%% of the 2-digit demos) train on their first",
+        episodes_help="12 PINs x 500: 6000 demonstrations in all",
+    )
+    parser.add_argument("--results", type=Path, default=RESULTS)
+    parser.set_defaults(func=reproduce_dial)
