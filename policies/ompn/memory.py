@@ -51,11 +51,13 @@ class Context(NamedTuple):
 
 
 class MemoryOutput(NamedTuple):
-    """Time-major outputs of a window: actor outputs `params` [T, B, n_params] and the expansion
-    distribution `expansion` [T, B, n] (slot 0 = bottom)."""
+    """Time-major outputs of a window: actor outputs `params` [T, B, n_params], the expansion
+    distribution `expansion` [T, B, n] (slot 0 = bottom), and what the actor read, `actor_input`
+    [T, B, 3H] (a critic that reads the same features trains the whole network in OMPN's RL form)."""
 
     params: Tensor
     expansion: Tensor
+    actor_input: Tensor
 
 
 class GatedCells(nn.Module):
@@ -183,8 +185,12 @@ class OrderedMemory(nn.Module):
         chosen = p.unsqueeze(-1)
         children = self._decomposed(candidates, reached, context.decomposition)
         memory = (reached - chosen) * memory + chosen * candidates + (1.0 - reached) * children
-        params = self.actor(torch.cat([memory[0], task, x], dim=-1))
-        return memory, p, params
+        return memory, p, self.actor(self.actor_input(memory, task, x))
+
+    @staticmethod
+    def actor_input(memory: Tensor, task: Tensor, x: Tensor) -> Tensor:
+        """What the actor reads [B, 3H]: the bottom slot, the task embedding and the observation."""
+        return torch.cat([memory[0], task, x], dim=-1)
 
     def unroll(self, features: PackedSequence, task_index: Tensor, total_length: int) -> MemoryOutput:
         """Windows that each start an episode, packed (encoded observations of their real steps, rows
@@ -195,12 +201,13 @@ class OrderedMemory(nn.Module):
         task = self.task_embedding(task_index)[features.sorted_indices]
         rows = torch.cat([torch.arange(size, device=task.device) for size in sizes])
         x = self.obs_projection(features.data)
-        memory, params, expansion = None, [], []
+        memory, params, expansion, actor_input = None, [], [], []
         steps = zip(x.split(sizes), self.context(x, task[rows]).split(sizes), strict=True)
         for x_t, context_t in steps:
             size = x_t.shape[0]
             memory, p, out = self.step(None if memory is None else memory[:, :size], x_t, task[:size], context_t)
             params.append(out)
             expansion.append(p.transpose(0, 1))
-        packed = [PackedSequence(torch.cat(parts), *features[1:]) for parts in (params, expansion)]
+            actor_input.append(self.actor_input(memory, task[:size], x_t))
+        packed = [PackedSequence(torch.cat(parts), *features[1:]) for parts in (params, expansion, actor_input)]
         return MemoryOutput(*(pad_packed_sequence(part, total_length=total_length)[0] for part in packed))
