@@ -153,14 +153,15 @@ def test_finetuned_checkpoint_runs_in_hard_mode_through_its_processors(finetuned
     assert not decisions_match_frames(finetuned)  # OCN's options last several steps
 
 
-def test_finetuned_checkpoint_runs_under_lerobot_eval_rollout(finetuned):
-    """The path `lerobot-eval --policy.path=... --env.type=craft --env.task=ADC` takes, in process."""
+def lerobot_eval_rollout(checkpoint: Path) -> tuple[PreTrainedPolicy, dict]:
+    """The path `lerobot-eval --policy.path=CHECKPOINT --env.type=craft --env.task=ADC` takes, in
+    process: 2 envs of at most 15 steps; returns the policy and the rollout."""
     from lerobot.configs import PreTrainedConfig
     from lerobot.envs.factory import make_env, make_env_config, make_env_pre_post_processors
     from lerobot.policies.factory import make_policy, make_pre_post_processors
     from lerobot.scripts.lerobot_eval import rollout
 
-    path = str(finetuned / "pretrained_model")
+    path = str(checkpoint)
     env_cfg = make_env_config("craft", task="ADC", max_steps=15)
     policy_cfg = PreTrainedConfig.from_pretrained(path)
     policy_cfg.pretrained_path = path
@@ -173,6 +174,11 @@ def test_finetuned_checkpoint_runs_under_lerobot_eval_rollout(finetuned):
     finally:
         vec.close()
     assert out["action"].shape[0] == 2 and out["success"].dtype == torch.bool
+    return policy, out
+
+
+def test_finetuned_checkpoint_runs_under_lerobot_eval_rollout(finetuned):
+    policy, _ = lerobot_eval_rollout(finetuned / "pretrained_model")
     assert policy.config.execution == "hard" and policy.last_step.decided is not None
 
 

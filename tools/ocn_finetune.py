@@ -18,6 +18,10 @@ The result is an `ocn` checkpoint whose options are that decoder (`decoder_laten
 decoders into one pool, option d * latent_dim + k being decoder d given latent k. A compILE with
 Gaussian latents has no pool of latents to choose from and is refused.
 
+An `ompn` checkpoint gets OMPN's RL form (`tools.ompn_rl`): OMPN cannot be split into options, so
+the whole network, with one new task embedding per new task, is finetuned by the same PPO on
+primitive actions, and the result is an `ompn` checkpoint. Only one, in Craft: it pools with nothing.
+
 `--flat` (instead of --checkpoint) trains the flat PPO baseline from scratch, with no demos: a
 policy on primitive actions, built as the same network whose N = 5 options are the five primitive
 actions as frozen one-step options (option a always emits action a) under `hierarchy="moe"`, so the
@@ -49,7 +53,9 @@ from lerobot.configs import NormalizationMode
 from lerobot.policies.pretrained import PreTrainedPolicy
 from policies.compile import CompILEPolicy
 from policies.ocn import OCNConfig, OCNPolicy
+from policies.ompn import OMPNPolicy
 from policies.sequence import SequenceConfig
+from tools.ompn_rl import ompn_rl_form
 
 # Config fields that must agree for options of different checkpoints to share one encoder, one
 # action head and one stacked cell.
@@ -66,8 +72,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
         prog="ocn-finetune", description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     parser.add_argument("--checkpoint", type=Path, action="append", default=[],
-                        help="a pretrained_model folder of an ocn or compile checkpoint; repeat to pool several "
-                             "option sets")
+                        help="a pretrained_model folder of an ocn or compile checkpoint (repeat to pool several "
+                             "option sets), or of one ompn checkpoint")
     parser.add_argument("--flat", action="store_true",
                         help="no checkpoint: flat PPO from scratch over the primitive actions (the baseline)")
     parser.add_argument("--hidden-size", type=int, default=128,
@@ -265,9 +271,10 @@ def _check_args(args: argparse.Namespace) -> None:
         raise FileExistsError(f"--out {args.out} exists and is not an empty folder; outputs are never overwritten.")
 
 
-def _initial_policy(args: argparse.Namespace, tasks: Sequence[str]) -> tuple[OCNPolicy, Any, Any]:
+def _initial_policy(args: argparse.Namespace, tasks: Sequence[str]) -> tuple[OCNPolicy | OMPNPolicy, Any, Any]:
     """The policy PPO starts from, with the processors its checkpoint is saved with: the pooled options
-    of --checkpoint under a fresh controller, or with --flat the primitive-action pool."""
+    of --checkpoint under a fresh controller, OMPN's RL form of an ompn --checkpoint, or with --flat the
+    primitive-action pool."""
     from policies.ocn import make_ocn_pre_post_processors
     from tools.episode_parsing import load_policy
 
@@ -277,12 +284,40 @@ def _initial_policy(args: argparse.Namespace, tasks: Sequence[str]) -> tuple[OCN
         return (policy, *make_ocn_pre_post_processors(policy.config))
     loaded = [load_policy(path) for path in args.checkpoint]
     names = [str(path) for path in args.checkpoint]
+    if any(isinstance(policy, OMPNPolicy) for policy, _, _ in loaded):
+        policy = ompn_rl_form([policy for policy, _, _ in loaded], names, tasks, args.temperature)
+        check_craft(policy)
+        return policy, loaded[0][1], loaded[0][2]
     sources = [option_source(policy, name) for (policy, _, _), name in zip(loaded, names, strict=True)]
     for policy in sources:
         check_craft(policy)
     torch.manual_seed(args.seed)
     policy = merge_option_pools(sources, tasks, args.temperature, names)
     return policy, loaded[0][1], loaded[0][2]
+
+
+def _source(args: argparse.Namespace, policy: OCNPolicy | OMPNPolicy) -> str:
+    """What the curve's title says was finetuned."""
+    if isinstance(policy, OMPNPolicy):
+        return "the whole OMPN"
+    if args.flat:
+        source = "flat PPO"
+    elif policy.config.decoder_latents:
+        source = f"latents of {len(args.checkpoint)} compILE decoder(s)"
+    else:
+        source = f"options of {len(args.checkpoint)} checkpoint(s)"
+    return f"{source}, T={policy.config.temperature:g}"
+
+
+def _hierarchy(policy: OCNPolicy | OMPNPolicy) -> dict[str, Any]:
+    """finetune.json's account of the finetuned hierarchy: an OCN's option pool, or OMPN's memory
+    (no options, no controller)."""
+    config = policy.config
+    if isinstance(policy, OMPNPolicy):
+        return {"hierarchy": None, "temperature": None, "n_options": None, "decoder_latents": None,
+                "n_slots": config.n_slots}
+    return {"hierarchy": config.hierarchy, "temperature": config.temperature, "n_options": config.n_options,
+            "decoder_latents": config.decoder_latents}
 
 
 def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
@@ -326,22 +361,14 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     wall = time.perf_counter() - started
     checkpoint = args.out / "pretrained_model"
     save_checkpoint(policy, preprocessor, postprocessor, checkpoint)
-    if args.flat:
-        source = "flat PPO"
-    elif policy.config.decoder_latents:
-        source = f"latents of {len(args.checkpoint)} compILE decoder(s)"
-    else:
-        source = f"options of {len(args.checkpoint)} checkpoint(s)"
-    title = f"ocn-finetune {','.join(labels)} ({args.reward}), {source}, T={policy.config.temperature:g}, seed {args.seed}"
+    title = f"ocn-finetune {','.join(labels)} ({args.reward}), {_source(args, policy)}, seed {args.seed}"
     plot_curve(rows, labels, args.out / "curve.png", title)
     summary = {
         "checkpoints": [str(path) for path in args.checkpoint],
         "flat": args.flat,
-        "hierarchy": policy.config.hierarchy,
-        "temperature": policy.config.temperature,
+        "policy_type": policy.name,
+        **_hierarchy(policy),
         "tasks": tasks,
-        "n_options": policy.config.n_options,
-        "decoder_latents": policy.config.decoder_latents,
         "reward": args.reward,
         "mode": args.mode,
         "envs": args.envs,
