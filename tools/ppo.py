@@ -76,7 +76,8 @@ class PPOConfig:
 
 
 class ValueHead(nn.Module):
-    """Critic V(h^c): the controller's state after a decision -> the value of that decision point."""
+    """Critic V(h^c): the controller's state after a decision -> the value of that decision point
+    (for an OMPN: what its actor reads at a step -> the value of that step)."""
 
     def __init__(self, hidden_size: int, width: int) -> None:
         super().__init__()
@@ -278,7 +279,6 @@ class PPOTrainer:
     def __init__(self, policy: OCNPolicy | OMPNPolicy, config: PPOConfig) -> None:
         self.actor = as_actor(policy)
         self.actor.check()
-        self.policy = policy
         self.config = config
         self.critic = ValueHead(self.actor.critic_size, config.value_hidden)
         self.trainable = [*self.actor.trainable(), *self.critic.parameters()]
