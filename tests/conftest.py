@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -110,28 +110,40 @@ def dial_dataset(tmp_path_factory) -> Path:
     return root
 
 
-@pytest.fixture(scope="session")
-def ocn_checkpoint(craft_dataset, tmp_path_factory) -> Path:
-    """A `pretrained_model` folder of a small, untrained OCN (seeded weights) for `craft_dataset`."""
+def untrained_checkpoint(
+    config: Any, root: Path, path: Path, adjust: Callable[[torch.nn.Module], None] | None = None
+) -> Path:
+    """A `pretrained_model` folder at `path` of a policy of `config` for the Craft dataset at `root`,
+    with weights seeded by 0 (and changed by `adjust`), as `lerobot-train` writes one."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
-    from policies.ocn import OCNConfig
-
     torch.manual_seed(0)
-    meta = LeRobotDatasetMetadata(CRAFT_REPO_ID, root=craft_dataset)
-    config = OCNConfig(device="cpu", hidden_size=16, mlp_hidden_size=16, n_options=3, window_size=24, temperature=1.0)
+    meta = LeRobotDatasetMetadata(CRAFT_REPO_ID, root=root)
     policy = make_policy(config, ds_meta=meta)
-    with torch.no_grad():  # sharpen the random controller so that its chosen option switches within episodes
-        policy.core.controller_init.normal_()
-        for weight in policy.core.controller.parameters():
-            weight.mul_(10.0)
-    path = tmp_path_factory.mktemp("ocn") / "pretrained_model"
+    if adjust is not None:
+        with torch.no_grad():
+            adjust(policy)
     policy.save_pretrained(path)
     preprocessor, postprocessor = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
     preprocessor.save_pretrained(path)
     postprocessor.save_pretrained(path)
     return path
+
+
+@pytest.fixture(scope="session")
+def ocn_checkpoint(craft_dataset, tmp_path_factory) -> Path:
+    """A `pretrained_model` folder of a small, untrained OCN (seeded weights) for `craft_dataset`."""
+    from policies.ocn import OCNConfig
+
+    def sharpen(policy: torch.nn.Module) -> None:
+        """Sharpen the random controller so that its chosen option switches within episodes."""
+        policy.core.controller_init.normal_()
+        for weight in policy.core.controller.parameters():
+            weight.mul_(10.0)
+
+    config = OCNConfig(device="cpu", hidden_size=16, mlp_hidden_size=16, n_options=3, window_size=24, temperature=1.0)
+    return untrained_checkpoint(config, craft_dataset, tmp_path_factory.mktemp("ocn") / "pretrained_model", sharpen)
 
 
 @pytest.fixture(scope="session")

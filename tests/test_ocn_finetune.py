@@ -180,7 +180,6 @@ def lerobot_eval_rollout(checkpoint: Path, env: str, task: str, max_steps: int) 
 def test_finetuned_checkpoint_runs_under_lerobot_eval_rollout(finetuned):
     out, policy = lerobot_eval_rollout(finetuned / "pretrained_model", "craft", "ADC", max_steps=15)
     assert out["action"].shape[0] == 2 and out["success"].dtype == torch.bool
-    assert policy.config.execution == "hard" and policy.last_step.decided is not None
 
 
 def assert_refused(cases: dict[str, list[str]], capsys: pytest.CaptureFixture) -> None:

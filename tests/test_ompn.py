@@ -76,7 +76,7 @@ def test_gated_cell_is_the_ompn_equation():
             param.normal_()
     v, h, c = torch.randn(5, 8), torch.randn(5, 8), torch.randn(5, 16)
     i = 1
-    out = cells.cell(i, v, cells.prepare(cells.project(c), h.expand(N_SLOTS, -1, -1))[i], h)
+    out = cells.cell(cells.unbound()[i], v, cells.prepare(cells.project(c), h.expand(N_SLOTS, -1, -1))[i], h)
     weight = torch.cat([cells.w_chain[i], cells.w_side[i], cells.w_context[i]])
     first = torch.cat([v, h, c], -1) @ weight + cells.b_in[i]
     gates, new = (torch.relu(first) @ cells.w_out[i] + cells.b_out[i]).split([24, 8], -1)

@@ -126,3 +126,38 @@ def test_results_header_notes_compiles_options_only_when_compile_ran():
     note = "3 options per cloned model (compILE: one per latent category of its decoder), cloned by"
     assert note in header(["OCN", "compILE"])
     assert "3 options per cloned model, cloned by" in header(["OCN", "MoE"]) and "compILE" not in header(["OCN", "MoE"])
+    assert "3 options per cloned model (OMPN: none, its whole network is finetuned), cloned by" in header(["OCN", "OMPN"])
+
+
+
+def test_ompn_is_cloned_with_its_own_defaults_finetuned_whole_in_s1_only_and_checked_against_ocn(craft_dataset,
+                                                                                                tmp_path):
+    import argparse
+
+    from tools.reproduce import main
+    from tools.reproduce.finetune import add_parsers, clone_settings
+    from tools.reproduce.runs import train_command
+
+    ompn = {method.key: method for method in METHODS}["ompn"]
+    args = argparse.Namespace(steps=2, batch_size=8, window_size=24, num_workers=0, threads=1,
+                              controller_lr_scale=0.1, frames=100, envs=4)
+    settings, overrides = clone_settings(args, SETTINGS["s1"], ompn)
+    command = train_command(settings, craft_dataset, "local/craft_small", tmp_path / "train", 1, overrides)
+    assert command[1] == "--policy.type=ompn" and "--policy.window_size=24" in command
+    assert not any(word.startswith(("--policy.n_options", "--policy.temperature", "--policy.controller_lr_scale"))
+                   for word in command)
+    clone = TrainedRun(tmp_path / "ompn" / "pretrained_model", "", None)
+    command = finetune_command(args, SETTINGS["s1"], ompn, "sparse", 1, [clone], tmp_path / "out")
+    assert "--flat" not in command and command[command.index("--checkpoint") + 1] == str(clone.checkpoint)
+
+    ocn = {key: {"mean": 0.5} for key in ("success", *(f"success[{t}]" for t in task_labels(SETTINGS["s1"])))}
+    summary = {"OCN | sparse": {"at_budget": ocn}, "OMPN | sparse": {"at_budget": {"success": {"mean": 0.7}}}}
+    checks = {check["check"].split(" (")[0]: check["holds"] for check in must_show(SETTINGS["s1"], summary)}
+    assert checks["sparse: OMPN's mean success below OCN's"] is False
+
+    parser = argparse.ArgumentParser()
+    add_parsers(parser.add_subparsers(dest="experiment"))
+    assert "ompn" in parser.parse_args(["s1"]).methods and "ompn" not in parser.parse_args(["s2"]).methods
+    with pytest.raises(SystemExit, match="OMPN cannot pool the skills of several cloned models"):
+        main(["s2", "--methods", "ocn,ompn", "--workdir", str(tmp_path / "work"), "--results", str(tmp_path / "r")])
+    assert not (tmp_path / "work").exists()

@@ -35,6 +35,10 @@ The result is an `ocn` checkpoint whose options are that decoder (`decoder_laten
 decoders into one pool, option d * latent_dim + k being decoder d given latent k. A compILE with
 Gaussian latents has no pool of latents to choose from and is refused.
 
+An `ompn` checkpoint gets OMPN's RL form (`tools.ompn_rl`): OMPN cannot be split into options, so
+the whole network, with one new task embedding per new task, is finetuned by the same PPO on
+primitive actions, and the result is an `ompn` checkpoint. Only one, in Craft: it pools with nothing.
+
 `--flat` (instead of --checkpoint) trains Craft's flat PPO baseline from scratch, with no demos: a
 policy on primitive actions, built as the same network whose N = 5 options are the five primitive
 actions as frozen one-step options (option a always emits action a) under `hierarchy="moe"`, so the
@@ -69,8 +73,10 @@ from lerobot.configs import NormalizationMode
 from lerobot.policies.pretrained import PreTrainedPolicy
 from policies.compile import CompILEPolicy
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
+from policies.ompn import OMPNPolicy
 from policies.sequence import SequenceConfig
 from tools.episode_parsing import Processor, load_policy
+from tools.ompn_rl import ompn_rl_form
 from tools.worlds import World, craft, dial, policy_world
 
 # Config fields that must agree for options of different checkpoints to share one encoder, one
@@ -88,8 +94,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
         prog="ocn-finetune", description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     parser.add_argument("--checkpoint", type=Path, action="append", default=[],
-                        help="a pretrained_model folder of an ocn or compile checkpoint; repeat to pool several "
-                             "option sets")
+                        help="a pretrained_model folder of an ocn or compile checkpoint (repeat to pool several "
+                             "option sets), or of one ompn checkpoint")
     parser.add_argument("--flat", action="store_true",
                         help="no checkpoint: flat PPO from scratch over Craft's primitive actions (the baseline; "
                              "not on Dial)")
@@ -312,7 +318,7 @@ class Start:
     controller's initial states) and as the curve's labels ("124"), and the processors the policy
     acts through and its checkpoint is saved with."""
 
-    policy: OCNPolicy
+    policy: OCNPolicy | OMPNPolicy
     world: World
     tasks: list[str]
     labels: list[str]
@@ -340,8 +346,8 @@ def _flat_world(args: argparse.Namespace) -> World:
 
 
 def _start(args: argparse.Namespace) -> Start:
-    """The pooled options of --checkpoint under a fresh controller, in the checkpoints' world, or with
-    --flat Craft's primitive-action pool."""
+    """The pooled options of --checkpoint under a fresh controller, in the checkpoints' world, OMPN's
+    RL form of an ompn --checkpoint (Craft), or with --flat Craft's primitive-action pool."""
     if args.flat:
         world = _flat_world(args)
         tasks, labels = _new_tasks(world, args.tasks)
@@ -350,6 +356,11 @@ def _start(args: argparse.Namespace) -> Start:
         return Start(policy, world, tasks, labels, *make_ocn_pre_post_processors(policy.config))
     loaded = [load_policy(path) for path in args.checkpoint]
     names = [str(path) for path in args.checkpoint]
+    if any(isinstance(policy, OMPNPolicy) for policy, _, _ in loaded):
+        world = craft(args.mode)
+        tasks, labels = _new_tasks(world, args.tasks)
+        policy = ompn_rl_form([policy for policy, _, _ in loaded], names, tasks, args.temperature)
+        return Start(policy, world, tasks, labels, loaded[0][1], loaded[0][2])
     sources = [option_source(policy, name) for (policy, _, _), name in zip(loaded, names, strict=True)]
     world = policy_world(sources[0].config.state_dim, sources[0].config.action_dim, args.mode)
     tasks, labels = _new_tasks(world, args.tasks)
@@ -357,6 +368,30 @@ def _start(args: argparse.Namespace) -> Start:
     policy = merge_option_pools(sources, tasks, args.temperature, names)
     check_same_normalisation(sources, [preprocessor for _, preprocessor, _ in loaded], names)
     return Start(policy, world, tasks, labels, loaded[0][1], loaded[0][2])
+
+
+def _source(args: argparse.Namespace, policy: OCNPolicy | OMPNPolicy) -> str:
+    """What the curve's title says was finetuned."""
+    if isinstance(policy, OMPNPolicy):
+        return "the whole OMPN"
+    if args.flat:
+        source = "flat PPO"
+    elif policy.config.decoder_latents:
+        source = f"latents of {len(args.checkpoint)} compILE decoder(s)"
+    else:
+        source = f"options of {len(args.checkpoint)} checkpoint(s)"
+    return f"{source}, T={policy.config.temperature:g}"
+
+
+def _hierarchy(policy: OCNPolicy | OMPNPolicy) -> dict[str, Any]:
+    """finetune.json's account of the finetuned hierarchy: an OCN's option pool, or OMPN's memory
+    (no options, no controller)."""
+    config = policy.config
+    if isinstance(policy, OMPNPolicy):
+        return {"hierarchy": None, "temperature": None, "n_options": None, "decoder_latents": None,
+                "n_slots": config.n_slots}
+    return {"hierarchy": config.hierarchy, "temperature": config.temperature, "n_options": config.n_options,
+            "decoder_latents": config.decoder_latents}
 
 
 def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
@@ -396,23 +431,15 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     wall = time.perf_counter() - started
     checkpoint = args.out / "pretrained_model"
     save_checkpoint(policy, start.preprocessor, start.postprocessor, checkpoint)
-    if args.flat:
-        source = "flat PPO"
-    elif policy.config.decoder_latents:
-        source = f"latents of {len(args.checkpoint)} compILE decoder(s)"
-    else:
-        source = f"options of {len(args.checkpoint)} checkpoint(s)"
-    title = f"ocn-finetune {','.join(labels)} ({args.reward}), {source}, T={policy.config.temperature:g}, seed {args.seed}"
+    title = f"ocn-finetune {','.join(labels)} ({args.reward}), {_source(args, policy)}, seed {args.seed}"
     plot_curve(rows, labels, args.out / "curve.png", title)
     summary = {
         "checkpoints": [str(path) for path in args.checkpoint],
         "world": start.world.name,
         "flat": args.flat,
-        "hierarchy": policy.config.hierarchy,
-        "temperature": policy.config.temperature,
+        "policy_type": policy.name,
+        **_hierarchy(policy),
         "tasks": tasks,
-        "n_options": policy.config.n_options,
-        "decoder_latents": policy.config.decoder_latents,
         "reward": args.reward,
         "mode": args.mode,
         "envs": args.envs,

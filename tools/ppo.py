@@ -33,13 +33,19 @@ Options, their initial states, the encoder and the action head are frozen: `requ
 switched off and only the controller, its per-task initial states and the critic are optimised.
 An episode that reaches the step limit ends like a terminated one (no bootstrap): the limit is
 part of the task, as in evaluation.
+
+What PPO needs of a policy is its `Actor` (`as_actor`): where rows decided and what they chose,
+the replay of whole episodes' decisions, and what it trains. An OCN's is `OptionController`, all of
+the above. An OMPN's is `tools.ompn_rl.MemoryActor`, OMPN's RL form (paper appendix A.3): OMPN
+cannot be split into options, so every row decides at every step, its choice is the primitive
+action, and the whole network is trained (one transition per env step: ordinary GAE).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -48,7 +54,9 @@ from torch import Tensor, nn
 from envs.batching import EpisodeBatch
 from lerobot.utils.constants import OBS_STATE
 from policies.ocn import OCNPolicy
+from policies.ompn import OMPNPolicy
 from tools.episode_parsing import Processor
+from tools.ompn_rl import MemoryActor
 from tools.rollouts import RolloutWorld, policy_inputs, step_envs
 
 
@@ -75,7 +83,8 @@ class PPOConfig:
 
 
 class ValueHead(nn.Module):
-    """Critic V(h^c): the controller's state after a decision -> the value of that decision point."""
+    """Critic V(h^c): the controller's state after a decision -> the value of that decision point
+    (for an OMPN: what its actor reads at a step -> the value of that step)."""
 
     def __init__(self, hidden_size: int, width: int) -> None:
         super().__init__()
@@ -104,7 +113,8 @@ class Acting:
 class Decisions:
     """One batch of finished episodes as padded decision sequences.
 
-    state [E, J, S] (the preprocessed state where the controller chose), option [E, J], reward [E, J]
+    state [E, J, S] (the preprocessed state where the controller chose), option [E, J] (the choice:
+    an option, or an OMPN's primitive action), reward [E, J]
     (discounted env reward while that option ran), duration [E, J] (env steps it ran), count [E]
     (decisions per episode; positions >= count are padding), task_index [E] (row of the policy's
     per-task initial controller states), and per-episode totals: return_ [E] (undiscounted),
@@ -138,13 +148,15 @@ def check_finetunable(policy: OCNPolicy) -> None:
 
 @torch.no_grad()
 def collect(
-    policy: OCNPolicy, envs: EpisodeBatch, acting: Acting, tasks: Sequence[str], seeds: Sequence[int], gamma: float
+    policy: OCNPolicy | OMPNPolicy, envs: EpisodeBatch, acting: Acting, tasks: Sequence[str], seeds: Sequence[int],
+    gamma: float,
 ) -> Decisions:
     """Run one episode in every env (env e on env seed seeds[e], task tasks[e]) and record its decisions.
 
     `tasks` are strings the policy knows (its `config.tasks`); the envs parse them too.
     """
-    check_finetunable(policy)
+    actor = as_actor(policy)
+    actor.check()
     n, tasks = envs.num_envs, list(tasks)
     obs = envs.reset(seeds=list(seeds), tasks=tasks)
     task_index = policy.task_index(tasks, n).cpu().numpy()
@@ -160,10 +172,12 @@ def collect(
     while not envs.done.all():
         active = ~envs.done
         inputs = policy_inputs(obs, tasks, acting.preprocessor)
-        action = acting.postprocessor(policy.select_action(inputs))
-        decided = np.flatnonzero(policy.last_step.decided.cpu().numpy() & active)
+        chosen = policy.select_action(inputs)
+        decides, choice = actor.choices(chosen)
+        action = acting.postprocessor(chosen)
+        decided = np.flatnonzero(decides & active)
         state[decided, count[decided]] = inputs[OBS_STATE].cpu().numpy()[decided]
-        option[decided, count[decided]] = policy.last_step.option.cpu().numpy()[decided]
+        option[decided, count[decided]] = choice[decided]
         count[decided] += 1
         age[decided] = 0
         obs, reward = step_envs(acting.world, envs, action)
@@ -236,15 +250,63 @@ def freeze_options(policy: OCNPolicy) -> list[nn.Parameter]:
     return trainable
 
 
-class PPOTrainer:
-    """Clipped-surrogate PPO updates of the controller (and critic) from batches of `Decisions`."""
+class Actor(Protocol):
+    """What PPO needs of a policy, so that one PPO serves OCN's controller and OMPN's whole network."""
 
-    def __init__(self, policy: OCNPolicy, config: PPOConfig) -> None:
-        check_finetunable(policy)
+    policy: OCNPolicy | OMPNPolicy
+    critic_size: int  # width of the features the critic reads
+
+    def check(self) -> None:
+        """Refuse a policy whose rollouts do not sample the choices PPO trains."""
+
+    def choices(self, action: Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """After `select_action` returned `action` [B, A]: the rows [B] that decided this step, and
+        every row's current choice [B]."""
+
+    def replay(self, critic: nn.Module, state: Tensor, task_index: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
+        """Logits [E, J, K] of the choices and the critic's values [E, J] over decision sequences
+        state [E, J, S] (count [E] real decisions each) of episodes of tasks task_index [E]."""
+
+    def trainable(self) -> list[nn.Parameter]:
+        """Switch `requires_grad` on for what PPO trains and off for the rest; return the former."""
+
+
+class OptionController:
+    """An OCN's actor: its controller, deciding where hard execution's options end, over frozen options."""
+
+    def __init__(self, policy: OCNPolicy) -> None:
         self.policy = policy
+        self.critic_size = policy.config.hidden_size
+
+    def check(self) -> None:
+        check_finetunable(self.policy)
+
+    def choices(self, action: Tensor) -> tuple[np.ndarray, np.ndarray]:
+        step = self.policy.last_step
+        return step.decided.cpu().numpy(), step.option.cpu().numpy()
+
+    def replay(self, critic: nn.Module, state: Tensor, task_index: Tensor, count: Tensor) -> tuple[Tensor, Tensor]:
+        """`replay_controller`; padding decisions are replayed too (the controller's steps are cheap)."""
+        return replay_controller(self.policy, critic, state, task_index)
+
+    def trainable(self) -> list[nn.Parameter]:
+        return freeze_options(self.policy)
+
+
+def as_actor(policy: OCNPolicy | OMPNPolicy) -> Actor:
+    """The policy's PPO actor: OMPN's RL form for an OMPN, else the OCN controller."""
+    return MemoryActor(policy) if isinstance(policy, OMPNPolicy) else OptionController(policy)
+
+
+class PPOTrainer:
+    """Clipped-surrogate PPO updates of the actor (and critic) from batches of `Decisions`."""
+
+    def __init__(self, policy: OCNPolicy | OMPNPolicy, config: PPOConfig) -> None:
+        self.actor = as_actor(policy)
+        self.actor.check()
         self.config = config
-        self.critic = ValueHead(policy.config.hidden_size, config.value_hidden)
-        self.trainable = [*freeze_options(policy), *self.critic.parameters()]
+        self.critic = ValueHead(self.actor.critic_size, config.value_hidden)
+        self.trainable = [*self.actor.trainable(), *self.critic.parameters()]
         self.optimizer = torch.optim.Adam(self.trainable, lr=config.lr, eps=1e-5)
 
     def set_lr_fraction(self, fraction: float) -> float:
@@ -263,7 +325,7 @@ class PPOTrainer:
         task_index = torch.from_numpy(batch.task_index)
         mask = torch.from_numpy(batch.mask)
         with torch.no_grad():
-            logits, value = replay_controller(self.policy, self.critic, state, task_index)
+            logits, value = self.actor.replay(self.critic, state, task_index, count)
             old_log_prob = torch.log_softmax(logits, -1).gather(-1, option.unsqueeze(-1)).squeeze(-1)
             advantage, returns = semi_mdp_gae(
                 torch.from_numpy(batch.reward).float(), torch.from_numpy(batch.duration), value, count,
@@ -289,7 +351,7 @@ class PPOTrainer:
         used = int(mask.sum(1).max())
         state, option, mask = state[:, :used], option[:, :used], mask[:, :used]
         old_log_prob, advantage, returns = old_log_prob[:, :used], advantage[:, :used], returns[:, :used]
-        logits, value = replay_controller(self.policy, self.critic, state, task_index)
+        logits, value = self.actor.replay(self.critic, state, task_index, mask.sum(1))
         log_probs = torch.log_softmax(logits, -1)
         log_prob = log_probs.gather(-1, option.unsqueeze(-1)).squeeze(-1)
         real_advantage = advantage[mask]
@@ -342,7 +404,7 @@ def iteration_row(
 
 
 def finetune(
-    policy: OCNPolicy,
+    policy: OCNPolicy | OMPNPolicy,
     envs: EpisodeBatch,
     acting: Acting,
     tasks: Sequence[str],

@@ -51,11 +51,23 @@ class Context(NamedTuple):
 
 
 class MemoryOutput(NamedTuple):
-    """Time-major outputs of a window: actor outputs `params` [T, B, n_params] and the expansion
-    distribution `expansion` [T, B, n] (slot 0 = bottom)."""
+    """Time-major outputs of a window: actor outputs `params` [T, B, n_params], the expansion
+    distribution `expansion` [T, B, n] (slot 0 = bottom), and what the actor read, `actor_input`
+    [T, B, 3H] (a critic that reads the same features trains the whole network in OMPN's RL form)."""
 
     params: Tensor
     expansion: Tensor
+    actor_input: Tensor
+
+
+class CellWeights(NamedTuple):
+    """The weights of one gated cell: views into its stack's parameters."""
+
+    w_chain: Tensor
+    w_out: Tensor
+    b_out: Tensor
+    gate_weight: Tensor
+    gate_bias: Tensor
 
 
 class GatedCells(nn.Module):
@@ -91,13 +103,21 @@ class GatedCells(nn.Module):
         """Add the side inputs' share [n, B, (k-1)H] to the projected context [n, B, cell_hidden]."""
         return projected if side is None else torch.baddbmm(projected, side, self.w_side)
 
-    def cell(self, i: int, chain: Tensor, prepared: Tensor, side: Tensor | None = None) -> Tensor:
-        """Cell i from its chain input [B, H], its prepared first layer [B, cell_hidden] and its side
-        inputs [B, (k-1)H] -> [B, H]."""
-        act = torch.relu(torch.addmm(prepared, chain, self.w_chain[i]))
-        out = torch.addmm(self.b_out[i], act, self.w_out[i])
+    def unbound(self) -> list[CellWeights]:
+        """Every cell's weights, cut from the stacks once (`unbind`). A recurrence takes its cells from
+        here rather than indexing the stacks at every step: in the backward pass each index writes a
+        zero-filled gradient of its whole stack, which made a backward through many steps several
+        times slower than its arithmetic."""
+        stacks = (self.w_chain, self.w_out, self.b_out, self.gate_weight, self.gate_bias)
+        return [CellWeights(*views) for views in zip(*(stack.unbind(0) for stack in stacks), strict=True)]
+
+    def cell(self, weights: CellWeights, chain: Tensor, prepared: Tensor, side: Tensor | None = None) -> Tensor:
+        """The cell of `weights` (from `unbound`) on its chain input [B, H], its prepared first layer
+        [B, cell_hidden] and its side inputs [B, (k-1)H] -> [B, H]."""
+        act = torch.relu(torch.addmm(prepared, chain, weights.w_chain))
+        out = torch.addmm(weights.b_out, act, weights.w_out)
         gate_logits, new = out.split([(self.n_carried + 1) * self.hidden, self.hidden], dim=-1)
-        gate_logits = F.layer_norm(gate_logits, gate_logits.shape[-1:]) * self.gate_weight[i] + self.gate_bias[i]
+        gate_logits = F.layer_norm(gate_logits, gate_logits.shape[-1:]) * weights.gate_weight + weights.gate_bias
         gates = torch.sigmoid(gate_logits).chunk(self.n_carried + 1, dim=-1)
         carried = (chain,) if side is None else (chain, *side.chunk(self.n_carried - 1, dim=-1))
         total = gates[-1] * new
@@ -143,12 +163,16 @@ class OrderedMemory(nn.Module):
         memory[-1] = F.layer_norm(task, (self.hidden_size,))
         return memory
 
-    def _composed(self, memory: Tensor, x: Tensor, projected: Tensor) -> Tensor:
+    def cells(self) -> tuple[list[CellWeights], list[CellWeights]]:
+        """The composition and decomposition cells' weights, for the steps of one pass (see `unbound`)."""
+        return self.compose.unbound(), self.decompose.unbound()
+
+    def _composed(self, memory: Tensor, x: Tensor, projected: Tensor, cells: list[CellWeights]) -> Tensor:
         """Bottom-up candidates [n, B, H]."""
         prepared = self.compose.prepare(projected, memory)
         candidates, chain = [], x
         for i in range(self.n_slots):
-            chain = self.compose.cell(i, chain, prepared[i], memory[i])
+            chain = self.compose.cell(cells[i], chain, prepared[i], memory[i])
             candidates.append(chain)
         return torch.stack(candidates)
 
@@ -158,33 +182,42 @@ class OrderedMemory(nn.Module):
         hidden = F.leaky_relu(self.expansion_memory(below_top) + projected)
         return stick_breaking(torch.sigmoid(self.expansion_out(hidden).squeeze(-1)))
 
-    def _decomposed(self, candidates: Tensor, reached: Tensor, projected: Tensor) -> Tensor:
+    def _decomposed(self, candidates: Tensor, reached: Tensor, projected: Tensor, cells: list[CellWeights]) -> Tensor:
         """Top-down children [n, B, H] (zero for the top slot); reached [n, B, 1] = P(pos <= i)."""
         children = [torch.zeros_like(candidates[0])]
         for i in range(self.n_slots - 1, 0, -1):
             parent = reached[i] * candidates[i] + (1.0 - reached[i]) * children[-1]
-            children.append(self.decompose.cell(i - 1, parent, projected[i - 1]))
+            children.append(self.decompose.cell(cells[i - 1], parent, projected[i - 1]))
         return torch.stack(children[::-1])
 
-    def step(self, memory: Tensor | None, x: Tensor, task: Tensor, context: Context) -> tuple[Tensor, Tensor, Tensor]:
-        """One step from memory [n, B, H] (None: the episode starts now), x [B, H], e [B, H].
+    def step(
+        self, memory: Tensor | None, x: Tensor, task: Tensor, context: Context,
+        cells: tuple[list[CellWeights], list[CellWeights]] | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """One step from memory [n, B, H] (None: the episode starts now), x [B, H], e [B, H], with the
+        cells of `cells()` (a pass of many steps gets them once).
 
         Returns the new memory [n, B, H], the expansion distribution p [n, B] and the actor's
         outputs [B, n_params].
         """
+        composition, decomposition = cells or self.cells()
         if memory is None:
             memory = candidates = self.initial_memory(task)
             p = torch.zeros_like(memory[..., 0])
             p[-1] = 1.0
         else:
-            candidates = self._composed(memory, x, context.composition)
+            candidates = self._composed(memory, x, context.composition, composition)
             p = self._expansion(memory, candidates, context.expansion)
         reached = p.cumsum(0).unsqueeze(-1)
         chosen = p.unsqueeze(-1)
-        children = self._decomposed(candidates, reached, context.decomposition)
+        children = self._decomposed(candidates, reached, context.decomposition, decomposition)
         memory = (reached - chosen) * memory + chosen * candidates + (1.0 - reached) * children
-        params = self.actor(torch.cat([memory[0], task, x], dim=-1))
-        return memory, p, params
+        return memory, p, self.actor(self.actor_input(memory, task, x))
+
+    @staticmethod
+    def actor_input(memory: Tensor, task: Tensor, x: Tensor) -> Tensor:
+        """What the actor reads [B, 3H]: the bottom slot, the task embedding and the observation."""
+        return torch.cat([memory[0], task, x], dim=-1)
 
     def unroll(self, features: PackedSequence, task_index: Tensor, total_length: int) -> MemoryOutput:
         """Windows that each start an episode, packed (encoded observations of their real steps, rows
@@ -195,12 +228,14 @@ class OrderedMemory(nn.Module):
         task = self.task_embedding(task_index)[features.sorted_indices]
         rows = torch.cat([torch.arange(size, device=task.device) for size in sizes])
         x = self.obs_projection(features.data)
-        memory, params, expansion = None, [], []
+        memory, params, expansion, actor_input, cells = None, [], [], [], self.cells()
         steps = zip(x.split(sizes), self.context(x, task[rows]).split(sizes), strict=True)
         for x_t, context_t in steps:
             size = x_t.shape[0]
-            memory, p, out = self.step(None if memory is None else memory[:, :size], x_t, task[:size], context_t)
+            memory, p, out = self.step(None if memory is None else memory[:, :size], x_t, task[:size], context_t,
+                                       cells)
             params.append(out)
             expansion.append(p.transpose(0, 1))
-        packed = [PackedSequence(torch.cat(parts), *features[1:]) for parts in (params, expansion)]
+            actor_input.append(self.actor_input(memory, task[:size], x_t))
+        packed = [PackedSequence(torch.cat(parts), *features[1:]) for parts in (params, expansion, actor_input)]
         return MemoryOutput(*(pad_packed_sequence(part, total_length=total_length)[0] for part in packed))

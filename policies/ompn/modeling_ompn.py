@@ -81,13 +81,18 @@ class OMPNPolicy(SequencePolicy, PreTrainedPolicy):
         self.last_expansion: Tensor | None = None
 
     def _unroll(self, state: Tensor, mask: Tensor, tasks: Sequence[str]) -> MemoryOutput:
+        """`unroll` for the task strings of a batch."""
+        return self.unroll(state, mask, self.task_index(tasks, state.shape[0]))
+
+    def unroll(self, state: Tensor, mask: Tensor, task_index: Tensor) -> MemoryOutput:
         """The memory over windows [B, T, S] that each start an episode and whose real frames (mask
         [B, T]) are a prefix, as LeRobot's windows and whole-episode batches are: only those frames
-        are encoded and run. Outputs are time-major."""
+        are encoded and run. Tasks are rows [B] of the task table (PPO replays episodes by them).
+        Outputs are time-major."""
         lengths = mask.sum(1).clamp_min(1).cpu()
         packed = pack_padded_sequence(state.transpose(0, 1), lengths, enforce_sorted=False)
         features = PackedSequence(self.encoder(packed.data), *packed[1:])
-        return self.memory.unroll(features, self.task_index(tasks, state.shape[0]), state.shape[1])
+        return self.memory.unroll(features, task_index, state.shape[1])
 
     def _action_log_prob(self, params: Tensor, action: Tensor) -> Tensor:
         """log p(a_t) [B, T] for time-major actor outputs [T, B, P] and actions [B, T, A] (LeRobot hands

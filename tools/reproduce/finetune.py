@@ -1,7 +1,9 @@
 """`ocn-reproduce s1` and `ocn-reproduce s2`: reusing skills with PPO (paper section 4.1, figures 4-5).
 
 S1: OCN, MoE, HIL and compILE are cloned from the S1 demonstrations ({AC, CD, DA}); their options
-are frozen and a fresh controller is trained by PPO on ADC, CAD and DCA. S2: one model is cloned from
+are frozen and a fresh controller is trained by PPO on ADC, CAD and DCA. OMPN, cloned too, has no
+options: its RL form finetunes the whole network on primitive actions (see `tools.ompn_rl`), so it
+has nothing to pool and, as in the paper, takes part in S1 only. S2: one model is cloned from
 {AB, BA} and one from {CD, DC}; their option pools are merged and the controller learns BADC, ACBD and
 CABD. compILE's options are its frozen decoder given each of its categorical latents (its RL form,
 see `ocn-finetune`), so S2 merges the two decoders' latent pools as it merges OCN's options.
@@ -49,12 +51,14 @@ class Setting:
 @dataclass(frozen=True)
 class Method:
     """How a method gets its skills: cloned as `--policy.type=policy_type` with these `--policy.*`
-    overrides, or none (flat)."""
+    overrides, or none (flat); `pools` says whether the skills of several clones can be merged, as
+    S2 needs."""
 
     key: str
     name: str
     overrides: dict[str, Any] | None
     policy_type: str = "ocn"
+    pools: bool = True
 
 
 SETTINGS = {
@@ -66,6 +70,7 @@ METHODS = (
     Method("moe", "MoE", {"hierarchy": "moe"}),
     Method("hil", "HIL", {"hierarchy": "hil"}),
     Method("compile", "compILE", {}, "compile"),
+    Method("ompn", "OMPN", {}, "ompn", pools=False),
     Method("flat", "flat PPO", None),
 )
 REWARDS = ("sparse", "dense")
@@ -75,9 +80,10 @@ BASELINES = tuple(method.name for method in METHODS if method.key != "ocn")
 def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -> tuple[TrainSettings, dict[str, Any]]:
     """The `lerobot-train` settings and `--policy.*` overrides of the method's clones.
 
-    The OCN family gets the setting's number of options and T = 10; compILE trains with its own
-    defaults (`CompILEConfig`: 4 segments, 32 categorical latents, lr 1e-4) on the same data, steps,
-    batch and windows, without OCN's controller learning-rate scale, which it has no use for.
+    The OCN family gets the setting's number of options and T = 10; compILE and OMPN train with their
+    own defaults (`CompILEConfig`: 4 segments, 32 categorical latents, lr 1e-4; `OMPNConfig`: 3 slots
+    of width 128, lr 1e-3, gradient clip 0.2) on the same data, steps, batch and windows, without
+    OCN's controller learning-rate scale, which they have no use for.
     """
     settings = imitation.train_settings(args)
     if method.policy_type != "ocn":
@@ -250,15 +256,18 @@ def markdown(result: dict[str, Any]) -> str:
     """The human-readable results file."""
     setting = SETTINGS[result["setting"]]
     labels = task_labels(setting)
-    # compILE's option count differs from the setting's; say so only in a file that has compILE rows.
+    # compILE's and OMPN's skills differ from the setting's options; say so only in a file that has their rows.
     ran = {row["method"] for row in result["summary"].values()}
-    compile_note = " (compILE: one per latent category of its decoder)" if "compILE" in ran else ""
+    notes = {"compILE": "compILE: one per latent category of its decoder",
+             "OMPN": "OMPN: none, its whole network is finetuned"}
+    shown = [note for method, note in notes.items() if method in ran]
+    skills_note = f" ({'; '.join(shown)})" if shown else ""
     lines = [
         f"# Finetuning on Craft {setting.name.upper()}: {setting.tasks}",
         "",
         f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
         f"{result['date']}. Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
-        f"{setting.n_options} options per cloned model{compile_note}, cloned by "
+        f"{setting.n_options} options per cloned model{skills_note}, cloned by "
         f"`lerobot-train`; PPO through `ocn-finetune`, "
         f"{result['settings']['frames']} env frames per run, {result['settings']['envs']} envs. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
@@ -321,6 +330,11 @@ def reproduce(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     setting = SETTINGS[args.experiment]
     methods = chosen_methods(args, METHODS)
+    unpooled = [method.name for method in methods if len(setting.demos) > 1 and not method.pools]
+    if unpooled:
+        raise SystemExit(f"ocn-reproduce {setting.name}: {', '.join(unpooled)} cannot pool the skills of several "
+                         "cloned models, which this setting merges (the paper leaves OMPN out of S2); drop it "
+                         "from --methods.")
     planned = [(m, reward, seed) for seed in range(1, args.seeds + 1) for m in methods for reward in args.rewards]
     runs: list[dict[str, Any]] = []
     result: dict[str, Any] = {}
@@ -359,7 +373,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         parser = sub.add_parser(name, help=f"finetuning on {setting.tasks} over skills cloned from "
                                 f"{' and '.join(t for _, t in setting.demos)}",
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-        add_finetune_arguments(parser, METHODS, 300_000)
+        runnable = tuple(method for method in METHODS if method.pools or len(setting.demos) == 1)
+        add_finetune_arguments(parser, runnable, 300_000)
         imitation.add_training_arguments(parser)
         parser.add_argument("--results", type=Path, default=RESULTS)
         parser.set_defaults(func=reproduce)

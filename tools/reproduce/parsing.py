@@ -50,7 +50,7 @@ from tools.reproduce.runs import TrainSettings, train_policy
 
 METRICS = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "task alignment", "nmi": "NMI"}
 _FINETUNED = {method.key: method for method in finetune.METHODS}
-METHODS = (_FINETUNED["ocn"], Method("ompn", "OMPN", {}, "ompn"), _FINETUNED["compile"], _FINETUNED["hil"])
+METHODS = (_FINETUNED["ocn"], _FINETUNED["ompn"], _FINETUNED["compile"], _FINETUNED["hil"])
 OCN = METHODS[0].name
 # Per method: the config fields reported as its hyperparameters (read back from the trained
 # checkpoint's config.json) and where their values come from.
