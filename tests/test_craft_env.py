@@ -28,7 +28,7 @@ from envs.craft import (
     task_description,
 )
 from envs.craft.layout import EMPTY_BORDERED
-from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, EGO_DIM, FACING, INVENTORY, MAP_DIM
+from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, EGO_DIM, FACING, INVENTORY, MAP_DIM, OBS_HIGH, OMPN_DIM
 from envs.craft.world import (
     AXE,
     BED,
@@ -41,9 +41,12 @@ from envs.craft.world import (
     GEM,
     GOLD,
     GRASS,
+    GRID_SIZE,
+    INTERIOR_SIZE,
     IRON,
     LADDER,
     LEFT,
+    N_KINDS,
     PLANK,
     RIGHT,
     ROPE,
@@ -483,6 +486,36 @@ def test_ompn_features_hand_built_state():
     out = ompn_features(batch)
     assert out.shape == (3, 2, 1075)
     torch.testing.assert_close(out[2, 0], feats)
+
+
+def reference_ompn_features(state: np.ndarray) -> np.ndarray:
+    """OMPN features of one compact state, entry by entry as the observation module documents them."""
+    grid = np.full((GRID_SIZE, GRID_SIZE), BOUNDARY)
+    grid[1:-1, 1:-1] = state[CELLS].reshape(INTERIOR_SIZE, INTERIOR_SIZE)
+    row, col = state[AGENT_ROW] + 1, state[AGENT_COL] + 1
+    feats = np.zeros(OMPN_DIM, dtype=np.float32)
+    for i in range(5):
+        for j in range(5):
+            r, c = row + i - 2, col + j - 2
+            kind = grid[r, c] if 0 <= r < GRID_SIZE and 0 <= c < GRID_SIZE else BOUNDARY
+            feats[(i * 5 + j) * N_KINDS + kind] = 1
+    for r in range(GRID_SIZE):
+        for c in range(GRID_SIZE):
+            feats[EGO_DIM + ((r // 2) * 5 + c // 2) * N_KINDS + grid[r, c]] += 1
+    feats[EGO_DIM + MAP_DIM + 7 : EGO_DIM + MAP_DIM + N_KINDS] = state[INVENTORY]
+    feats[EGO_DIM + MAP_DIM + N_KINDS + state[FACING]] = 1
+    return feats
+
+
+def test_ompn_features_match_the_entry_by_entry_reference_at_every_agent_cell():
+    rng = np.random.default_rng(0)
+    states = rng.integers(0, OBS_HIGH + 1, size=(4 * INTERIOR_SIZE**2, OBS_DIM))
+    states[:, AGENT_ROW], states[:, AGENT_COL] = np.divmod(np.arange(len(states)) % INTERIOR_SIZE**2, INTERIOR_SIZE)
+    states[:, FACING] = np.arange(len(states)) // INTERIOR_SIZE**2
+    states = np.concatenate([states, CraftEnv().reset(seed=3)[0][None]])
+    expected = np.stack([reference_ompn_features(state) for state in states])
+    assert np.array_equal(ompn_features(torch.as_tensor(states)).numpy(), expected)
+    assert np.array_equal(ompn_features(torch.as_tensor(states, dtype=torch.float32)).numpy(), expected)
 
 
 def test_gym_registration():

@@ -12,7 +12,7 @@ from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
-from policies.ocn.cell import StackedCell
+from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
 from policies.ocn.heads import GaussianHead, mixture_log_prob
 from policies.ocn.recurrence import OCNState
 from policies.sequence import training_windows
@@ -345,6 +345,60 @@ def test_select_action_keeps_state_and_reset_clears_it():
     assert actions[0].shape == (2, 1) and policy.predict_action_chunk(
         {OBS_STATE: episode[OBS_STATE][:, 1], "task": episode["task"]}
     ).shape == (2, 1, 1)
+
+
+def fresh_projection(cell: StackedCell, x: torch.Tensor) -> torch.Tensor:
+    """The observation projection from a side-by-side copy of the cell's weights made now."""
+    return stacked_linear(x, side_by_side(cell.w_x.detach()), cell.b_in.detach())
+
+
+def test_inference_projection_keeps_its_weight_copy_until_the_weights_change():
+    policy = make_policy()
+    other = make_policy()
+    with torch.no_grad():
+        for param in other.parameters():
+            param.add_(torch.rand_like(param))
+    cells = (policy.core.controller, policy.core.options)
+    x = torch.randn(3, STATE_DIM)
+    with torch.inference_mode():
+        kept = [cell.w_x_matrix(cell.w_x) for cell in cells]
+    assert not any(matrix.is_inference() for matrix in kept)
+    with torch.no_grad():
+        assert all(cell.w_x_matrix(cell.w_x) is matrix for cell, matrix in zip(cells, kept, strict=True))
+    optimizer = torch.optim.SGD(policy.parameters(), lr=0.1)
+    policy(make_batch())[0].backward()
+    optimizer.step()
+    with torch.inference_mode():
+        for cell in cells:
+            assert torch.equal(cell.project(x), fresh_projection(cell, x))
+    policy.load_state_dict(other.state_dict())
+    with torch.no_grad():
+        for cell, other_cell in zip(cells, (other.core.controller, other.core.options), strict=True):
+            assert torch.equal(cell.project(x), fresh_projection(other_cell, x))
+    loss, _ = policy(make_batch())
+    loss.backward()
+    assert policy.core.options.w_x.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("execution", ["soft", "hard"])
+@pytest.mark.parametrize("inference_mode", ["greedy", "sample"])
+@pytest.mark.parametrize("action_type", ["discrete", "continuous"])
+def test_select_action_in_inference_mode_as_lerobot_eval_calls_it_is_unchanged(execution, inference_mode, action_type):
+    """The same actions, hierarchy readout and recurrent states as without inference mode."""
+    runs = []
+    for mode in (torch.inference_mode, torch.enable_grad):
+        action_dim = 2 if action_type == "continuous" else 1
+        policy = make_policy(action_type, action_dim, execution=execution, inference_mode=inference_mode)
+        episode = make_batch(batch=3, steps=6)
+        torch.manual_seed(5)
+        steps = []
+        for t in range(6):
+            with mode():
+                action = policy.select_action({OBS_STATE: episode[OBS_STATE][:, t], "task": episode["task"]})
+            steps.append((action, *vars(policy.last_step).values(), *vars(policy._state).values()))
+        runs.append(steps)
+    for inference, plain in zip(*runs, strict=True):
+        assert all(a is b or torch.equal(a, b) for a, b in zip(inference, plain, strict=True))
 
 
 def test_continuous_select_action_shape():

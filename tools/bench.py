@@ -7,7 +7,8 @@
 `ocn-bench train` measures OCN training: real (unpadded) frames per second through a real
 `lerobot-train` run on the S1 data, the same model's update alone, LeRobot's windowed
 `__getitem__`, the stacked option cells against a per-option Python loop, and `select_action`
-latency.
+latency under `torch.inference_mode`, as `lerobot-eval` calls it (`--only latency`: that alone,
+printed and not written, for checking it without the minutes of training runs).
 
 `ocn-bench view` times `ocn-view` writing an .rrd of 50 validation episodes with a trained
 checkpoint, as a whole subprocess (interpreter start and imports included) and as the logging
@@ -383,8 +384,24 @@ def bench_update(root: Path, batch_size: int, window: int, threads: int) -> dict
     return {"threads": threads, "padded_frames_per_s": padded_fps, "real_frames_per_s": padded_fps * real}
 
 
+def bench_select_action() -> dict[str, float]:
+    """Seconds per `select_action` step of the benchmark policy, for 1 and 64 envs."""
+    from policies.ocn.benchmark import make_bench_policy, select_action_latency
+
+    policy = make_bench_policy()
+    return {
+        "batch_1": select_action_latency(policy, batch_size=1),
+        "batch_64": select_action_latency(policy, batch_size=64),
+    }
+
+
 def run_train_bench(args: argparse.Namespace) -> None:
-    from policies.ocn.benchmark import compare_stacked_vs_loop, make_bench_policy, select_action_latency
+    if args.only == "latency":
+        result = {"machine": machine(), "load_average": os.getloadavg(), "select_action_s": bench_select_action()}
+        print(json.dumps(result, indent=2))
+        return
+
+    from policies.ocn.benchmark import compare_stacked_vs_loop
 
     root = Path(args.root)
     if not (root / "meta" / "info.json").exists():
@@ -393,7 +410,6 @@ def run_train_bench(args: argparse.Namespace) -> None:
              "--episodes-per-task", "6000", "--root", str(root), "--repo-id", "local/craft_s1", "--seed", "0"],
             check=True, capture_output=True,
         )
-    craft_policy = make_bench_policy()
     result = {
         "benchmark": "ocn-bench train",
         "machine": machine(),
@@ -402,10 +418,7 @@ def run_train_bench(args: argparse.Namespace) -> None:
         "getitem_s_per_window": bench_getitem(root, args.window),
         "update_only": [bench_update(root, args.batch_size, args.window, t) for t in (1, 2)],
         "stacked_vs_loop": compare_stacked_vs_loop(batch_size=512, window=32, threads=2),
-        "select_action_s": {
-            "batch_1": select_action_latency(craft_policy, batch_size=1),
-            "batch_64": select_action_latency(craft_policy, batch_size=64),
-        },
+        "select_action_s": bench_select_action(),
     }
     _write(result, Path(args.out), _train_markdown(result))
 
@@ -432,8 +445,8 @@ def _train_markdown(r: dict) -> str:
         f"| stacked options, forward + backward [512 x 32], 2 threads | {loop['stacked_frames_per_s']:,.0f} frames/s |\n"
         f"| per-option Python loop, same weights and batch | {loop['loop_frames_per_s']:,.0f} frames/s "
         f"(stacked is {loop['speedup']:.2f}x) |\n"
-        f"| `select_action`, 1 env | {sa['batch_1'] * 1e3:.2f} ms per step |\n"
-        f"| `select_action`, 64 envs | {sa['batch_64'] * 1e3:.2f} ms per step |\n"
+        f"| `select_action` in inference mode (as `lerobot-eval`), 1 env | {sa['batch_1'] * 1e3:.2f} ms per step |\n"
+        f"| `select_action` in inference mode, 64 envs | {sa['batch_64'] * 1e3:.2f} ms per step |\n"
     )
 
 
@@ -491,6 +504,8 @@ def main(argv: list[str] | None = None) -> None:
     train.add_argument("--window", type=int, default=24, help="--policy.window_size")
     train.add_argument("--out", default=str(RESULTS / "bench_train.json"))
     train.add_argument("--note", default="", help="conditions of the run, stored with the results")
+    train.add_argument("--only", choices=["latency"],
+                       help="measure select_action latency alone and print it as JSON (nothing is written)")
     train.set_defaults(func=run_train_bench)
     dial = sub.add_parser("dial", help="Dial env steps/s, its physics rate against bare mj_step, expert success")
     dial.add_argument("--steps", type=int, default=2000, help="env steps per timing")

@@ -22,11 +22,12 @@ describe the world (the border is constant, so only the interior is kept)::
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envs.craft.world import GRID_SIZE, INTERIOR_SIZE, KIND_NAMES, N_KINDS
+from envs.craft.world import BOUNDARY, GRID_SIZE, INTERIOR_SIZE, KIND_NAMES, N_KINDS
 
 if TYPE_CHECKING:
     import torch
@@ -66,6 +67,41 @@ OMPN_DIM = EGO_DIM + MAP_DIM + N_KINDS + 4
 
 
 N_ACTIVE = WINDOW * WINDOW + GRID_SIZE * GRID_SIZE + (N_KINDS - INVENTORY_FIRST_KIND) + 1
+N_CELL_ENTRIES = WINDOW * WINDOW + GRID_SIZE * GRID_SIZE
+FACING_FEATURE = EGO_DIM + MAP_DIM + N_KINDS
+
+
+def _interior_cell(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Index of interior cells (rows, cols) in the compact state, or N_CELLS (where
+    `ompn_active_entries` puts the boundary kind) for cells outside the interior."""
+    inside = (rows >= 0) & (rows < INTERIOR_SIZE) & (cols >= 0) & (cols < INTERIOR_SIZE)
+    return np.where(inside, rows * INTERIOR_SIZE + cols, N_CELLS)
+
+
+@functools.cache
+def _entry_tables(device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """What every state's entries share, on `device`, built once: they depend on no state or on the
+    agent's cell alone, so a state costs a few gathers instead of building its padded board.
+
+    - sources [N_CELLS, N_CELL_ENTRIES]: per agent cell, the cells its entries read: the 5x5 window
+      centred on it, then the whole grid with its border, both row-major
+    - offsets [N_CELL_ENTRIES]: the feature a cell entry's kind is added to: window cell w's one-hot
+      at w * N_KINDS, a grid cell's count at its block's EGO_DIM + block * N_KINDS
+    - inventory [14]: the features of the carried kinds
+    """
+    import torch
+
+    agent_row, agent_col = np.divmod(np.arange(N_CELLS), INTERIOR_SIZE)
+    window_row, window_col = np.divmod(np.arange(WINDOW * WINDOW), WINDOW)
+    radius = WINDOW // 2
+    window = _interior_cell(agent_row[:, None] + window_row - radius, agent_col[:, None] + window_col - radius)
+    grid_row, grid_col = np.divmod(np.arange(GRID_SIZE * GRID_SIZE), GRID_SIZE)
+    grid = _interior_cell(grid_row - 1, grid_col - 1)
+    sources = np.concatenate([window, np.broadcast_to(grid, (N_CELLS, grid.size))], axis=1)
+    block = (grid_row // BLOCK) * N_BLOCKS + grid_col // BLOCK
+    offsets = np.concatenate([np.arange(WINDOW * WINDOW) * N_KINDS, EGO_DIM + block * N_KINDS])
+    inventory = EGO_DIM + MAP_DIM + np.arange(INVENTORY_FIRST_KIND, N_KINDS)
+    return tuple(torch.as_tensor(table, dtype=torch.long, device=device) for table in (sources, offsets, inventory))
 
 
 def ompn_active_entries(state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -81,32 +117,15 @@ def ompn_active_entries(state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     lead = state.shape[:-1]
     s = state.reshape(-1, OBS_DIM).long()
     b = s.shape[0]
-    device = s.device
-    # Pad by the window radius beyond the border so every window stays in bounds.
-    pad = WINDOW // 2
-    size = GRID_SIZE + 2 * pad
-    board = torch.ones((b, size, size), dtype=torch.long, device=device)
-    inner = slice(pad + 1, pad + 1 + INTERIOR_SIZE)
-    board[:, inner, inner] = s[:, CELLS].view(b, INTERIOR_SIZE, INTERIOR_SIZE)
-
-    offsets = torch.arange(WINDOW, device=device)
-    rows = (s[:, AGENT_ROW, None] + 1 + offsets)[:, :, None]
-    cols = (s[:, AGENT_COL, None] + 1 + offsets)[:, None, :]
-    window = board[torch.arange(b, device=device)[:, None, None], rows, cols].reshape(b, -1)
-    ego = torch.arange(WINDOW * WINDOW, device=device) * N_KINDS + window
-
-    grid = board[:, pad : pad + GRID_SIZE, pad : pad + GRID_SIZE].reshape(b, -1)
-    cell = torch.arange(GRID_SIZE * GRID_SIZE, device=device)
-    block = (cell // GRID_SIZE // BLOCK) * N_BLOCKS + (cell % GRID_SIZE) // BLOCK
-    coarse = EGO_DIM + block * N_KINDS + grid
-
-    carried = torch.arange(INVENTORY_FIRST_KIND, N_KINDS, device=device).expand(b, -1)
-    inventory = EGO_DIM + MAP_DIM + carried
-    facing = EGO_DIM + MAP_DIM + N_KINDS + s[:, FACING, None]
-
-    index = torch.cat([ego, coarse, inventory, facing], dim=1)
-    value = torch.ones(index.shape, dtype=torch.float32, device=device)
-    value[:, WINDOW * WINDOW + GRID_SIZE * GRID_SIZE : -1] = s[:, INVENTORY].float()
+    sources, offsets, inventory = _entry_tables(s.device)
+    # The interior's kinds, then the boundary kind that every cell outside the interior reads.
+    kinds = torch.cat([s[:, CELLS], s.new_full((b, 1), BOUNDARY)], dim=1)
+    agent = s[:, AGENT_ROW] * INTERIOR_SIZE + s[:, AGENT_COL]
+    cells = offsets + kinds.gather(1, sources.index_select(0, agent))
+    facing = FACING_FEATURE + s[:, FACING, None]
+    index = torch.cat([cells, inventory.expand(b, -1), facing], dim=1)
+    value = torch.ones(index.shape, dtype=torch.float32, device=s.device)
+    value[:, N_CELL_ENTRIES:-1] = s[:, INVENTORY].float()
     return index.reshape(*lead, N_ACTIVE), value.reshape(*lead, N_ACTIVE)
 
 

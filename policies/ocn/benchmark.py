@@ -152,14 +152,15 @@ def compare_stacked_vs_loop(
 def select_action_latency(
     policy: OCNPolicy, batch_size: int = 1, steps: int = 200, threads: int = 1
 ) -> float:
-    """Seconds per `select_action` call for `batch_size` envs (median over `steps` calls)."""
+    """Seconds per `select_action` call for `batch_size` envs (median over `steps` calls), made
+    under `torch.inference_mode` as `lerobot-eval` makes them."""
     obs_dim = policy.encoder.out_dim
     observation = {
         OBS_STATE: (torch.rand(batch_size, obs_dim) < 0.05).float(),
         "task": [policy.config.tasks[0]] * batch_size,
     }
     times = []
-    with torch_threads(threads):
+    with torch_threads(threads), torch.inference_mode():
         policy.eval()
         policy.reset()
         for _ in range(steps):

@@ -27,12 +27,44 @@ def stacked_uniform(n_modules: int, fan_in: int, *shape: int) -> nn.Parameter:
     return nn.Parameter(torch.empty(n_modules, *shape).uniform_(-bound, bound))
 
 
-def stacked_linear(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
-    """One input through N stacked affine maps in one matmul: x [..., B, in], weight [N, in, out],
-    bias [N, 1, out] -> [..., N, B, out]."""
+def side_by_side(weight: Tensor) -> Tensor:
+    """Stacked maps [N, in, out] as one matrix [in, N * out] (a copy: the N maps interleave)."""
     n, in_dim, width = weight.shape
-    flat = x.reshape(-1, in_dim) @ weight.transpose(0, 1).reshape(in_dim, n * width)
+    return weight.transpose(0, 1).reshape(in_dim, n * width)
+
+
+def stacked_linear(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+    """One input through N stacked affine maps in one matmul: x [..., B, in], weight [in, N * out]
+    (`side_by_side`), bias [N, 1, out] -> [..., N, B, out]."""
+    n, _, width = bias.shape
+    flat = x.reshape(-1, weight.shape[0]) @ weight
     return flat.view(*x.shape[:-1], n, width).movedim(-2, -3) + bias
+
+
+class SideBySide:
+    """`side_by_side` of one weight, kept between calls where no gradient is needed.
+
+    The copy costs more than the matmul itself for one env (a fresh 1.6 MB at every inference step
+    of the default options), so outside autograd it is reused until the weight changes: in-place
+    updates (optimizer steps, `load_state_dict`) bump the weight's version counter and moves give
+    it new storage. Where the weight needs a gradient it is copied afresh, inside the graph, and so
+    is a weight made in inference mode, which has no version counter. The kept copy is a normal
+    tensor even when made in inference mode (as `lerobot-eval` calls `select_action`), so that
+    autograd may use it later.
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple[int, int] | None = None
+        self._matrix: Tensor | None = None
+
+    def __call__(self, weight: Tensor) -> Tensor:
+        if (weight.requires_grad and torch.is_grad_enabled()) or weight.is_inference():
+            return side_by_side(weight)
+        key = (weight.data_ptr(), weight._version)
+        if key != self._key:
+            with torch.inference_mode(False), torch.no_grad():
+                self._matrix, self._key = side_by_side(weight), key
+        return self._matrix
 
 
 class StackedCell(nn.Module):
@@ -72,10 +104,11 @@ class StackedCell(nn.Module):
         head_width = n_out + hidden_size + int(with_end)
         self.w_out = stacked_uniform(n_modules, mlp_hidden_size, mlp_hidden_size, head_width)
         self.b_out = stacked_uniform(n_modules, mlp_hidden_size, 1, head_width)
+        self.w_x_matrix = SideBySide()
 
     def project(self, x: Tensor) -> Tensor:
         """Observation part of the first layer, bias included: x [..., B, in] -> [..., N, B, d_mlp]."""
-        return stacked_linear(x, self.w_x, self.b_in)
+        return stacked_linear(x, self.w_x_matrix(self.w_x), self.b_in)
 
     def step(self, x_proj: Tensor, h: Tensor) -> CellOutput:
         """One step from projected observations x_proj [N, B, d_mlp] and states h [N, B, d_hid].

@@ -20,7 +20,7 @@ chooses again at every step regardless.
 import torch
 from torch import Tensor, nn
 
-from .cell import CellOutput, stacked_linear, stacked_uniform
+from .cell import CellOutput, SideBySide, stacked_linear, stacked_uniform
 
 
 class LatentDecoderPool(nn.Module):
@@ -39,10 +39,11 @@ class LatentDecoderPool(nn.Module):
         self.latent_weight = stacked_uniform(n_decoders, latent_dim, latent_dim, width)
         self.out_weight = stacked_uniform(n_decoders, width, width, n_out)
         self.out_bias = stacked_uniform(n_decoders, width, 1, n_out)
+        self.obs_matrix = SideBySide()
 
     def project(self, x: Tensor) -> Tensor:
         """Each decoder's observation term W_obs o + b_obs: x [..., B, in] -> [..., D, B, width]."""
-        return stacked_linear(x, self.obs_weight, self.obs_bias)
+        return stacked_linear(x, self.obs_matrix(self.obs_weight), self.obs_bias)
 
     def step(self, x_proj: Tensor, h: Tensor) -> CellOutput:
         """Every option's head parameters [N, B, n_out] from projected observations x_proj [D, B, width];
