@@ -13,7 +13,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
-from policies.ocn.heads import GaussianHead, mixture_log_prob
+from policies.ocn.heads import DiscreteHead, GaussianHead, mixture_log_prob, sample_index
 from policies.ocn.recurrence import OCNState
 from policies.sequence import training_windows
 
@@ -301,6 +301,38 @@ def test_unknown_task_is_a_value_error_listing_the_tasks():
     with pytest.raises(ValueError, match="fly to the moon") as error:
         policy(batch)
     assert all(task in str(error.value) for task in TASKS)
+
+
+# ---- action choice ---------------------------------------------------------------------------------
+
+
+def test_sample_index_draws_what_torch_multinomial_draws():
+    torch.manual_seed(0)
+    probs = torch.softmax(torch.randn(64, 6) * 3, dim=-1)
+    probs[::3, :3] = 0.0
+    probs[5] = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    torch.manual_seed(3)
+    expected = torch.multinomial(probs, 1).squeeze(-1), torch.rand(4)
+    torch.manual_seed(3)
+    drawn = sample_index(probs), torch.rand(4)
+    assert torch.equal(drawn[0], expected[0]) and torch.equal(drawn[1], expected[1])
+    assert drawn[0][5] == 2 and (drawn[0][::3] >= 3).all()
+
+
+@pytest.mark.parametrize("batch", [1, 64])
+def test_discrete_choice_is_the_einsum_mixture_and_its_multinomial_draw(batch):
+    head = DiscreteHead(n_actions=5)
+    torch.manual_seed(0)
+    for n_components in (1, 2, 6):
+        weights = torch.softmax(torch.randn(batch, n_components), dim=-1)
+        params = torch.randn(n_components, batch, 5) * 2
+        mixture = torch.einsum("bk,kba->ba", weights, torch.softmax(params, dim=-1))
+        assert torch.equal(head.mixture(weights, params), mixture)
+        assert torch.equal(head.choose(weights, params, greedy=True), mixture.argmax(-1, keepdim=True).float())
+        torch.manual_seed(4)
+        expected = torch.multinomial(mixture, 1).float()
+        torch.manual_seed(4)
+        assert torch.equal(head.choose(weights, params, greedy=False), expected)
 
 
 # ---- continuous head -------------------------------------------------------------------------------

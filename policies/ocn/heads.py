@@ -24,6 +24,14 @@ def mixture_log_prob(weights: Tensor, component_log_prob: Tensor) -> Tensor:
     return top.squeeze(-1) + torch.log(total.clamp_min(torch.finfo(total.dtype).tiny))
 
 
+def sample_index(probs: Tensor) -> Tensor:
+    """One index per row of probabilities [B, K], drawn as argmax_k p_k / E_k with E_k ~ Exp(1)
+    (the exponential race). That is how `torch.multinomial` draws a single sample, so the draws are
+    the same for the same generator state; it only skips multinomial's input checks, which cost
+    more than the draw itself at one env."""
+    return (probs / torch.empty_like(probs).exponential_()).argmax(dim=-1)
+
+
 class DiscreteHead:
     """Categorical options; actions are stored as one index per frame ([..., 1])."""
 
@@ -36,10 +44,17 @@ class DiscreteHead:
         index = index.unsqueeze(-2).expand(params.shape[:-1]).unsqueeze(-1)
         return torch.log_softmax(params, dim=-1).gather(-1, index).squeeze(-1)
 
+    def mixture(self, weights: Tensor, params: Tensor) -> Tensor:
+        """Action probabilities sum_k w_k softmax(params_k): weights [B, K], params [K, B, A] -> [B, A].
+
+        One batched matmul, [1, K] @ [K, A] per row: what einsum would call, without its planning."""
+        component_probs = torch.softmax(params, dim=-1).transpose(0, 1)
+        return torch.bmm(weights.unsqueeze(1), component_probs).squeeze(1)
+
     def choose(self, weights: Tensor, params: Tensor, greedy: bool) -> Tensor:
-        """Mixture probabilities sum_k w_k softmax(params_k), then argmax or a sample -> [B, 1] float."""
-        probs = torch.einsum("bk,kba->ba", weights, torch.softmax(params, dim=-1))
-        index = probs.argmax(dim=-1) if greedy else torch.multinomial(probs, 1).squeeze(-1)
+        """The mixture's most likely action or a sample from it -> [B, 1] float."""
+        probs = self.mixture(weights, params)
+        index = probs.argmax(dim=-1) if greedy else sample_index(probs)
         return index.unsqueeze(-1).float()
 
 
@@ -64,10 +79,7 @@ class GaussianHead:
     def choose(self, weights: Tensor, params: Tensor, greedy: bool) -> Tensor:
         """Greedy: mean of the heaviest component; else sample a component, then the Gaussian -> [B, D]."""
         mean, log_std = self.split(params)
-        if greedy:
-            component = weights.argmax(dim=-1)
-        else:
-            component = torch.multinomial(weights, 1).squeeze(-1)
+        component = weights.argmax(dim=-1) if greedy else sample_index(weights)
         rows = torch.arange(weights.shape[0], device=weights.device)
         chosen_mean, chosen_log_std = mean[component, rows], log_std[component, rows]
         if greedy:

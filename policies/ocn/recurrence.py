@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from .cell import StackedCell
+from .heads import sample_index
 
 
 @dataclass
@@ -179,7 +180,7 @@ class OCNCore(nn.Module):
         decided = forced | fired
         logits, controller_h = self.decide(x.controller, state.controller_h)
         p_c = torch.softmax(logits, dim=-1)
-        choice = p_c.argmax(-1) if greedy else torch.multinomial(p_c, 1).squeeze(-1)
+        choice = p_c.argmax(-1) if greedy else sample_index(p_c)
         option = torch.where(decided, choice, state.option)
         gate = decided[None, :, None]
         option_params = torch.where(gate, restarted.logits, continued.logits)
