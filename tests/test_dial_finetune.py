@@ -66,6 +66,7 @@ def test_dial_finetuning_writes_pin_curves_and_keeps_the_options_bit_identical(f
     assert int(rows[-1]["frames"]) >= 200 and all(0.0 <= float(row["mean_return"]) <= 3.0 for row in rows)
     summary = json.loads((finetuned / "finetune.json").read_text())
     assert summary["world"] == "dial" and summary["tasks"] == TASKS and summary["n_options"] == 3
+    assert summary["mode"] is None  # a Craft world mode; Dial has none
 
     policy, preprocessor, _ = load_ocn(finetuned / "pretrained_model")
     source, source_preprocessor, _ = load_ocn(dial_checkpoint)

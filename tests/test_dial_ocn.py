@@ -180,12 +180,12 @@ def test_dial_rollouts_of_the_trained_policy(trained):
     table = option_subtask_success(
         policy, preprocessor, postprocessor, DIAL_WORLD, ["1", "press 2"], episodes=1, seed=5
     )
-    assert table.shape == (2, 2) and np.isin(table, [0.0, 1.0]).all()
+    assert table.success.shape == (2, 2) and np.isin(table.success, [0.0, 1.0]).all()
     with torch.no_grad():  # options that terminate at once get one step: too short to reach a key
         policy.core.options.b_out[..., -1] = 50.0
         policy.core.options.w_out[..., -1] = 0.0
     table = option_subtask_success(policy, preprocessor, postprocessor, DIAL_WORLD, ["1", "2"], episodes=2, seed=5)
-    assert np.array_equal(table, np.zeros((2, 2)))
+    assert np.array_equal(table.success, np.zeros((2, 2))) and np.array_equal(table.stopped, np.ones((2, 2)))
     with pytest.raises(ValueError, match="Unknown task"):
         free_run_success(policy, preprocessor, postprocessor, DIAL_WORLD, ["48"], episodes=1)
 

@@ -150,6 +150,8 @@ def test_ocn_eval_scores_a_hil_checkpoint(trained, tmp_path):
                      "--rollouts", "2"]) == 0
     result = json.loads(out.read_text())
     assert 0.0 <= result["f1_tol0"] <= result["f1_tol1"] <= 1.0 and list(result["success_rate"]) == [AC]
+    assert ocn_eval(["--policy", str(tmp_path / "hil"), "--root", str(root), "--repo-id", REPO_ID,
+                     "--out", str(tmp_path / "oracle.json"), "--oracle-tasks", "CA"]) == 2  # no termination to decide at
 
 
 def test_lerobot_eval_counts_the_episode(trained):
@@ -275,9 +277,12 @@ def test_ocn_eval_scores_the_checkpoint_on_the_validation_split(trained, tmp_pat
     out = tmp_path / "eval.json"
     run_cli(
         "ocn-eval", "--policy", str(checkpoint), "--root", str(root), "--repo-id", REPO_ID,
-        "--out", str(out), "--rollouts", "3", cwd=tmp_path,
+        "--out", str(out), "--rollouts", "3", "--oracle-tasks", "CA", cwd=tmp_path,
     )
     result = json.loads(out.read_text())
+    oracle = result["oracle_controller"]
+    assert set(oracle["option_of_subtask"]) == {"A", "C"} and set(oracle["option_of_subtask"].values()) <= {0, 1, 2}
+    assert list(oracle["success_rate"]) == ["CA"] and 0.0 <= oracle["mean_success_rate"] <= 1.0
     for key in ("f1_tol0", "f1_tol1", "align_acc", "nmi", "mean_success_rate"):
         assert 0.0 <= result[key] <= 1.0, key
     assert result["f1_tol1"] >= result["f1_tol0"]
@@ -290,7 +295,7 @@ def test_ocn_eval_scores_the_checkpoint_on_the_validation_split(trained, tmp_pat
     assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
 
 
-def test_ocn_eval_names_bad_input(trained, tmp_path):
+def test_ocn_eval_names_bad_input(trained, tmp_path, capsys):
     root, checkpoint = trained
     proc = subprocess.run(
         [str(BIN / "ocn-eval"), "--policy", str(tmp_path), "--root", str(root), "--repo-id", REPO_ID,
@@ -304,3 +309,8 @@ def test_ocn_eval_names_bad_input(trained, tmp_path):
         capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode == 2 and "no split 'test'" in proc.stderr
+    from tools.ocn_eval import main as ocn_eval
+
+    args = ["--policy", str(checkpoint), "--root", str(root), "--repo-id", REPO_ID, "--out", str(tmp_path / "o.json")]
+    assert ocn_eval([*args, "--oracle-tasks", "AD"]) == 2  # D is no subtask of the dataset's AC
+    assert "subtask(s) ['D']" in capsys.readouterr().err and not (tmp_path / "o.json").exists()

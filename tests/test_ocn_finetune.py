@@ -93,6 +93,14 @@ def test_pooled_option_runs_alone_like_its_source(ocn_checkpoint):
         obs, *_ = craft.step(action.long().numpy().ravel())
 
 
+def test_new_controller_gets_temperature_one_whatever_the_checkpoints(ocn_checkpoint):
+    """The imitation phase's temperature (10 here) is not carried into the fresh controller; an
+    explicit temperature still is."""
+    slow = variant(ocn_checkpoint, seed=3, temperature=10.0)
+    assert merge_option_pools([slow], [ADC]).config.temperature == 1.0
+    assert merge_option_pools([slow], [ADC], temperature=4.0).config.temperature == 4.0
+
+
 def test_pools_of_different_sizes_are_refused_with_the_field(ocn_checkpoint):
     first, _, _ = load_ocn(ocn_checkpoint)
     with pytest.raises(ValueError, match=r"hidden_size is 16 vs 8"):

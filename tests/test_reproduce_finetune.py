@@ -64,6 +64,7 @@ def test_s2_pools_the_options_of_both_cloned_models(tmp_path):
     command = finetune_command(args, SETTINGS["s2"], METHODS[0], "sparse", 1, clones, tmp_path / "out")
     assert [command[i + 1] for i, word in enumerate(command) if word == "--checkpoint"] == [str(c.checkpoint) for c in clones]
     assert command[command.index("--tasks") + 1] == "BADC,ACBD,CABD"
+    assert command[command.index("--temperature") + 1] == "1"  # spelled out: older default runs are refused
 
 
 def test_hil_is_cloned_as_hil_and_checked_against_ocn(tmp_path):
@@ -149,6 +150,9 @@ def test_ompn_is_cloned_with_its_own_defaults_finetuned_whole_in_s1_only_and_che
     clone = TrainedRun(tmp_path / "ompn" / "pretrained_model", "", None)
     command = finetune_command(args, SETTINGS["s1"], ompn, "sparse", 1, [clone], tmp_path / "out")
     assert "--flat" not in command and command[command.index("--checkpoint") + 1] == str(clone.checkpoint)
+    assert "--temperature" not in command  # ocn-finetune refuses it for OMPN, which has no controller
+    flat = {method.key: method for method in METHODS}["flat"]
+    assert "--temperature" not in finetune_command(args, SETTINGS["s1"], flat, "sparse", 1, [], tmp_path / "flat")
 
     ocn = {key: {"mean": 0.5} for key in ("success", *(f"success[{t}]" for t in task_labels(SETTINGS["s1"])))}
     summary = {"OCN | sparse": {"at_budget": ocn}, "OMPN | sparse": {"at_budget": {"success": {"mean": 0.7}}}}

@@ -6,7 +6,9 @@ and task alignment from the predicted boundaries, NMI from per-step labels (OCN:
 argmax p^c). In the dataset's world (Craft or Dial, read from the dataset; `tools.worlds`) it
 measures the whole policy's free-run success per task (Dial: per PIN) and, for a policy made of
 options, each frozen option alone on each subtask (paper table 1; Dial: each digit), drawn as a
-PNG beside the JSON. Every model type parses through `tools.episode_parsing` (OMPN: the top-k steps
+PNG beside the JSON. With --oracle-tasks it also runs the frozen options on other tasks (the
+finetuning tasks, say) under an oracle controller (`tools.rollouts.oracle_controller_success`):
+the ceiling a finetuned controller over these options can reach. Every model type parses through `tools.episode_parsing` (OMPN: the top-k steps
 of its expected expansion; compILE: its argmax segment boundaries, labelled by its concrete
 latents); what does not apply to a model (OMPN has no labels, OMPN and compILE no options) is null
 in the JSON, with the reason under "not_applicable".
@@ -40,6 +42,10 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="first env seed (away from recording seeds); also seeds the policy's sampling")
     parser.add_argument("--batch-size", type=int, default=1024, help="episodes per parsing batch")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--oracle-tasks", default=None,
+                        help="also measure the frozen options on these tasks (e.g. ADC,CAD,DCA or 124,481) under an "
+                             "oracle controller that starts, at every decision, the option with the best option x "
+                             "subtask success on the current subtask: the ceiling of finetuning over these options")
     parser.add_argument("--mcap", type=Path, default=None,
                         help="also log every free-run step (state, action, p^c, option, termination, reward) to "
                              "this MCAP file, which must not exist")
@@ -66,6 +72,23 @@ def plot_option_table(table: np.ndarray, subtasks: list[str], path: Path, title:
     plt.close(fig)
 
 
+def _oracle(policy, preprocessor, postprocessor, world, tasks: list[tuple[int, ...]], args: argparse.Namespace,
+            option_table: dict[str, Any]) -> dict[str, Any]:
+    """Success on --oracle-tasks under the oracle controller, each subtask given the option that
+    completes it most often in the option x subtask table (ties: the lower index)."""
+    from tools import rollouts
+
+    table = np.asarray(option_table["table"])
+    columns = option_table["subtasks"]
+    best = {code: int(table[:, j].argmax()) for j, code in enumerate(columns)}
+    success = rollouts.oracle_controller_success(
+        policy, preprocessor, postprocessor, world.rollouts(), [world.task_code(task) for task in tasks],
+        {world.subtask_codes.index(code): option for code, option in best.items()}, args.rollouts, args.seed,
+    )
+    return {"option_of_subtask": best, "success_rate": success,
+            "mean_success_rate": float(np.mean(list(success.values())))}
+
+
 def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     """Everything `ocn-eval` reports, as the JSON it writes."""
     import torch
@@ -85,6 +108,14 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     has_options = isinstance(policy, rollouts.OptionPolicy)
     if args.mcap is not None and not has_options:
         raise ValueError(f"--mcap logs the option choices of a policy made of options; `{policy.name}` has none.")
+    oracle_tasks = None
+    if args.oracle_tasks is not None:
+        if not has_options:
+            raise ValueError(f"--oracle-tasks runs frozen options; `{policy.name}` has none.")
+        if policy.config.fixed_skill_length is not None:
+            raise ValueError(f"--oracle-tasks starts options where their own termination fires; "
+                             f"`hierarchy={policy.config.hierarchy}` options have none.")
+        oracle_tasks = world.parse_task_list(args.oracle_tasks)
     torch.manual_seed(args.seed)  # the policy samples its actions: same seed, same rollouts
     started = time.perf_counter()
     episodes = load_episodes(args.root, split_episodes(args.root, args.split), args.max_episodes)
@@ -94,6 +125,11 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     dataset_tasks = sorted(set(episodes.tasks), key=policy.config.tasks.index)
     tasks = [world.task_key(task) for task in dataset_tasks]
     subtasks = world.used_subtasks(dataset_tasks)
+    if oracle_tasks is not None:
+        unmeasured = sorted({world.subtask_codes[s] for task in oracle_tasks for s in task} - set(subtasks))
+        if unmeasured:
+            raise ValueError(f"--oracle-tasks uses subtask(s) {unmeasured} that no task of the dataset holds, so no "
+                             f"option is measured on them (the option table's subtasks: {subtasks}).")
     acting = world.rollouts()
     option_table = None
     not_applicable = {}
@@ -103,8 +139,9 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         )
         option_table = {
             "subtasks": subtasks,
-            "rows": [f"option {i}" for i in range(table.shape[0])],
-            "table": table.round(4).tolist(),
+            "rows": [f"option {i}" for i in range(table.success.shape[0])],
+            "table": table.success.round(4).tolist(),
+            "stopped_by_termination": table.stopped.round(4).tolist(),
         }
     else:
         not_applicable["option_subtask_success"] = (
@@ -125,9 +162,13 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     finally:
         if log is not None:
             log.close()
+    oracle = None  # after the free runs, so that asking for it leaves every other figure as it was
+    if oracle_tasks is not None:
+        oracle = _oracle(policy, preprocessor, postprocessor, world, oracle_tasks, args, option_table)
     return {
         **scores,
         "option_subtask_success": option_table,
+        **({"oracle_controller": oracle} if oracle is not None else {}),
         **({"not_applicable": not_applicable} if not_applicable else {}),
         "success_rate": success,
         "mean_success_rate": float(np.mean(list(success.values()))),

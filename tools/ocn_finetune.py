@@ -8,6 +8,13 @@ checkpoint with `execution="hard"`, so `load_ocn` and `lerobot-eval --policy.pat
 run the finetuned hierarchy unchanged. A checkpoint of the MoE or HIL baseline (`hierarchy="moe"` or
 `"hil"`) keeps its hierarchy, so its options keep running for their fixed number of steps.
 
+The new controller's softmax temperature is 1 (`FRESH_CONTROLLER_TEMPERATURE`), not the
+imitation phase's T = 10: the paper gives T only for imitation, where it slows the controller
+against the options ("fast and slow learning"), and its PPO table has none. A fresh controller at
+T = 10 starts with near-uniform choices that PPO's learning rate moves ten times more slowly; on
+S1 over the same frozen options, T = 1 reached 0.59 sparse success on ADC in 200k frames in two
+seeds against 0.33 and 0.46 at T = 10 (`results/baselines_s1_adc`).
+
 The world PPO acts in is the checkpoints' own, read from the widths of their state and action
 (`tools.worlds.policy_world`: 81 floats and one action index for Craft, 39 floats and 9 motor
 controls for Dial), since a checkpoint has no dataset beside it to ask; the PPO loop, its semi-MDP
@@ -79,6 +86,9 @@ from tools.episode_parsing import Processor, load_policy
 from tools.ompn_rl import ompn_rl_form
 from tools.worlds import World, craft, dial, policy_world
 
+# The new controller's softmax temperature unless --temperature says otherwise (module docstring).
+FRESH_CONTROLLER_TEMPERATURE = 1.0
+
 # Config fields that must agree for options of different checkpoints to share one encoder, one
 # action head and one stacked cell.
 # `hierarchy` and the skill length it fixes too: MoE's and HIL's options were trained to run a fixed
@@ -115,8 +125,9 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="episode step limit (default: the env's; Craft 100 for tasks of 3+ subtasks, Dial 150 "
                              "per digit)")
     parser.add_argument("--temperature", type=float, default=None,
-                        help="controller softmax temperature T (default: the first checkpoint's; 1 for --flat "
-                             "and for compile checkpoints)")
+                        help="the new controller's softmax temperature T (default 1: the imitation phase's T = 10 "
+                             "keeps a fresh controller's choices near uniform at PPO's learning rate, see "
+                             "results/baselines_s1_adc)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads; the per-step matmuls are small, and more threads than free "
                              "cores slow them down many times over")
@@ -178,7 +189,8 @@ def merge_option_pools(
     names: Sequence[str] | None = None,
 ) -> OCNPolicy:
     """A new hard-execution OCN whose options are those of `policies`, in order, and whose controller is
-    fresh (drawn from torch's current RNG) with one zero initial state per new task.
+    fresh (drawn from torch's current RNG) with one zero initial state per new task and softmax
+    temperature `temperature` (None: `FRESH_CONTROLLER_TEMPERATURE`, whatever the checkpoints' was).
 
     The stacked option weights and the options' initial states are concatenated along the module
     axis, so option k of the pool is exactly option k - offset of its source model.
@@ -193,9 +205,8 @@ def merge_option_pools(
         "execution": "hard",
         "inference_mode": "sample",
         "pretrained_path": None,
+        "temperature": FRESH_CONTROLLER_TEMPERATURE if temperature is None else temperature,
     }
-    if temperature is not None:
-        changes["temperature"] = temperature
     pooled = OCNPolicy(dataclasses.replace(policies[0].config, **changes))
     with torch.no_grad():
         for name, param in pooled.core.options.named_parameters():
@@ -218,7 +229,8 @@ def primitive_action_pool(tasks: Sequence[str], hidden_size: int, temperature: f
 
     config = OCNConfig(
         device="cpu", n_options=N_ACTIONS, n_actions=N_ACTIONS, hidden_size=hidden_size, mlp_hidden_size=hidden_size,
-        temperature=1.0 if temperature is None else temperature, tasks=list(tasks), hierarchy="moe",
+        temperature=FRESH_CONTROLLER_TEMPERATURE if temperature is None else temperature, tasks=list(tasks),
+        hierarchy="moe",
         execution="hard", inference_mode="sample",
         input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (OBS_DIM,))},
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))},
@@ -441,7 +453,7 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
         **_hierarchy(policy),
         "tasks": tasks,
         "reward": args.reward,
-        "mode": args.mode,
+        "mode": args.mode if start.world.name == "craft" else None,  # Craft's world mode; Dial has none
         "envs": args.envs,
         "seed": args.seed,
         "ppo": dataclasses.asdict(config),

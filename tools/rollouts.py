@@ -118,6 +118,17 @@ def free_run_success(
     return {task: float(success[k].mean()) for k, task in enumerate(tasks)}
 
 
+@dataclass(frozen=True)
+class OptionTable:
+    """Each frozen option alone on each subtask, [n_options, n_subtasks]: the fraction of episodes it
+    completed (`success`, paper table 1) and the fraction its own termination stopped before the
+    subtask was done (`stopped`; the rest ran out of steps). The split tells an option that gives
+    up early from one that wanders."""
+
+    success: np.ndarray
+    stopped: np.ndarray
+
+
 @torch.no_grad()
 def option_subtask_success(
     policy: OCNPolicy,
@@ -127,10 +138,10 @@ def option_subtask_success(
     subtasks: Sequence[str],
     episodes: int,
     seed: int = 0,
-) -> np.ndarray:
+) -> OptionTable:
     """Paper table 1: [n_options, len(subtasks)] fraction of fresh episodes of the one-subtask task
     `subtasks[j]` that option i, run alone from its initial state, completes before its termination
-    fires (e > 0.5) or the env's step limit.
+    fires (e > 0.5) or the env's step limit; and the fraction its termination stopped before then.
 
     Options of a fixed length L (MoE: 1, HIL: L) have no termination of their own (their heads are
     untrained): option i then runs on, restarting from its initial state every L steps, which is
@@ -154,4 +165,49 @@ def option_subtask_success(
         step += 1
         obs, _ = step_envs(world, batch, postprocessor(action))
     completed = (batch.progress == 1) & ~stopped
-    return completed.reshape(n_options, len(subtasks), episodes).mean(axis=2)
+    shape = (n_options, len(subtasks), episodes)
+    return OptionTable(completed.reshape(shape).mean(axis=2), stopped.reshape(shape).mean(axis=2))
+
+
+@torch.no_grad()
+def oracle_controller_success(
+    policy: OCNPolicy,
+    preprocessor: Processor,
+    postprocessor: Processor,
+    world: RolloutWorld,
+    tasks: Sequence[str],
+    option_of_subtask: dict[int, int],
+    episodes: int,
+    seed: int = 0,
+) -> dict[str, float]:
+    """Success rate per task (keyed as given) of the frozen options under an oracle controller: at the
+    first step and wherever the running option's termination fires (sampled, as in hard execution
+    and PPO; e > 0.5 under greedy inference), it starts `option_of_subtask[s]` for the task's current
+    subtask id s. No controller trained over these options decides better at those points, so this
+    is the ceiling of finetuning them (paper 3.3): it tells options too weak to chain apart from a
+    controller that has not learnt yet."""
+    if policy.config.fixed_skill_length is not None:
+        raise ValueError(f"The oracle controller decides where an option's own termination fires; "
+                         f"`hierarchy={policy.config.hierarchy}` options have none.")
+    greedy = policy.config.inference_mode == "greedy"
+    rows, seeds = _episodes_of(tasks, episodes, seed)
+    named = [world.policy_task(task) for task in rows]
+    batch, obs = world.start(rows, seeds)
+    missing = sorted({s for e in range(len(rows)) for s in batch.task_of(e)} - option_of_subtask.keys())
+    if missing:
+        raise ValueError(f"No option is assigned to subtask id(s) {missing} of the tasks {list(tasks)}.")
+    lookup = torch.tensor([option_of_subtask.get(s, 0) for s in range(max(option_of_subtask) + 1)])
+    env_rows = np.arange(len(rows))
+    option, option_h = torch.zeros(len(rows), dtype=torch.long), None
+    decide = torch.ones(len(rows), dtype=torch.bool)
+    while not batch.done.all():
+        state = policy_inputs(obs, named, preprocessor)[OBS_STATE]
+        if option_h is not None:
+            _, _, end = policy.act_with_options(state, option, option_h, torch.zeros_like(decide), greedy)
+            decide = end > 0.5 if greedy else torch.bernoulli(end).bool()
+        current = batch.tasks[env_rows, np.minimum(batch.progress, batch.task_len - 1)]
+        option = torch.where(decide, lookup[torch.from_numpy(current)], option)
+        action, option_h, _ = policy.act_with_options(state, option, option_h, decide, greedy)
+        obs, _ = step_envs(world, batch, postprocessor(action))
+    success = (batch.progress == batch.task_len).reshape(len(tasks), episodes)
+    return {task: float(success[k].mean()) for k, task in enumerate(tasks)}

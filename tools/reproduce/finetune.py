@@ -30,6 +30,7 @@ import numpy as np
 
 from tools import console_script
 from tools.bench import RESULTS
+from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE
 from tools.reproduce import imitation
 from tools.reproduce.report import checks_table, over_seeds, provenance, write_result_files
 from tools.reproduce.runs import TrainedRun, TrainSettings, record_dataset, train_policy
@@ -111,11 +112,16 @@ def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int)
 
 def finetune_command(args: argparse.Namespace, setting: Setting, method: Method, reward: str, seed: int,
                      clones: list[TrainedRun], out: Path) -> list[str]:
-    """The `ocn-finetune` call of one run (flat PPO: the same command with `--flat` and no checkpoint)."""
+    """The `ocn-finetune` call of one run (flat PPO: the same command with `--flat` and no checkpoint).
+
+    Over OCN-type pools (OCN, MoE, HIL) the new controller's temperature is spelled out: it once
+    defaulted to the checkpoint's, so a run made then is refused rather than reused."""
     command = [console_script("ocn-finetune"), "--tasks", setting.tasks, "--reward", reward,
                "--frames", str(args.frames), "--envs", str(args.envs), "--seed", str(seed), "--out", str(out)]
     if method.overrides is None:
         return command + ["--flat"]
+    if method.policy_type == "ocn":
+        command += ["--temperature", f"{FRESH_CONTROLLER_TEMPERATURE:g}"]
     return command + [word for run in clones for word in ("--checkpoint", str(run.checkpoint))]
 
 
