@@ -150,8 +150,9 @@ def test_ocn_eval_scores_a_hil_checkpoint(trained, tmp_path):
                      "--rollouts", "2"]) == 0
     result = json.loads(out.read_text())
     assert 0.0 <= result["f1_tol0"] <= result["f1_tol1"] <= 1.0 and list(result["success_rate"]) == [AC]
+    # HIL's options have no termination of their own for the oracle to decide at
     assert ocn_eval(["--policy", str(tmp_path / "hil"), "--root", str(root), "--repo-id", REPO_ID,
-                     "--out", str(tmp_path / "oracle.json"), "--oracle-tasks", "CA"]) == 2  # no termination to decide at
+                     "--out", str(tmp_path / "oracle.json"), "--oracle-tasks", "CA"]) == 2
 
 
 def test_lerobot_eval_counts_the_episode(trained):

@@ -8,10 +8,11 @@ measures the whole policy's free-run success per task (Dial: per PIN) and, for a
 options, each frozen option alone on each subtask (paper table 1; Dial: each digit), drawn as a
 PNG beside the JSON. With --oracle-tasks it also runs the frozen options on other tasks (the
 finetuning tasks, say) under an oracle controller (`tools.rollouts.oracle_controller_success`):
-the ceiling a finetuned controller over these options can reach. Every model type parses through `tools.episode_parsing` (OMPN: the top-k steps
-of its expected expansion; compILE: its argmax segment boundaries, labelled by its concrete
-latents); what does not apply to a model (OMPN has no labels, OMPN and compILE no options) is null
-in the JSON, with the reason under "not_applicable".
+the ceiling a finetuned controller over these options can reach. Every model type parses through
+`tools.episode_parsing` (OMPN: the top-k steps of its expected expansion; compILE: its argmax
+segment boundaries, labelled by its concrete latents); what does not apply to a model (OMPN has
+no labels, OMPN and compILE no options) is null in the JSON, with the reason under
+"not_applicable".
 """
 
 from __future__ import annotations
@@ -112,9 +113,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     if args.oracle_tasks is not None:
         if not has_options:
             raise ValueError(f"--oracle-tasks runs frozen options; `{policy.name}` has none.")
-        if policy.config.fixed_skill_length is not None:
-            raise ValueError(f"--oracle-tasks starts options where their own termination fires; "
-                             f"`hierarchy={policy.config.hierarchy}` options have none.")
+        rollouts.check_self_terminating(policy)  # now, not after the parse and the free runs
         oracle_tasks = world.parse_task_list(args.oracle_tasks)
     torch.manual_seed(args.seed)  # the policy samples its actions: same seed, same rollouts
     started = time.perf_counter()

@@ -169,6 +169,14 @@ def option_subtask_success(
     return OptionTable(completed.reshape(shape).mean(axis=2), stopped.reshape(shape).mean(axis=2))
 
 
+def check_self_terminating(policy: OCNPolicy) -> None:
+    """The oracle controller decides where an option's own termination fires: refuse options of a
+    fixed length (MoE, HIL), whose termination heads are untrained."""
+    if policy.config.fixed_skill_length is not None:
+        raise ValueError(f"The oracle controller decides where an option's own termination fires; "
+                         f"`hierarchy={policy.config.hierarchy}` options have none.")
+
+
 @torch.no_grad()
 def oracle_controller_success(
     policy: OCNPolicy,
@@ -186,9 +194,7 @@ def oracle_controller_success(
     subtask id s. No controller trained over these options decides better at those points, so this
     is the ceiling of finetuning them (paper 3.3): it tells options too weak to chain apart from a
     controller that has not learnt yet."""
-    if policy.config.fixed_skill_length is not None:
-        raise ValueError(f"The oracle controller decides where an option's own termination fires; "
-                         f"`hierarchy={policy.config.hierarchy}` options have none.")
+    check_self_terminating(policy)
     greedy = policy.config.inference_mode == "greedy"
     rows, seeds = _episodes_of(tasks, episodes, seed)
     named = [world.policy_task(task) for task in rows]
