@@ -19,12 +19,14 @@ from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.configs.types import FeatureType
 from lerobot.datasets.io_utils import load_episodes
 from lerobot.optim import AdamConfig
+from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 OBS_ENCODERS = ("craft", "identity")
 ACTION_TYPES = ("discrete", "continuous")
 WINDOW_STARTS = ("episode", "any")
 INFERENCE_MODES = ("sample", "greedy")
+LR_SCHEDULES = ("constant", "cosine")
 PAD_KEYS = (f"{ACTION}_is_pad", f"{OBS_STATE}_is_pad")
 
 
@@ -84,6 +86,9 @@ class SequenceConfig(PreTrainedConfig):
 
     optimizer_lr: float = 1e-3
     optimizer_grad_clip_norm: float = 10.0
+    # "constant" is the paper's Adam at a fixed lr; "cosine" anneals every parameter group's lr to 0
+    # over `lerobot-train --steps` (no warm-up), for runs that stop while the NLL is still falling.
+    lr_schedule: str = "constant"
 
     # Empty means "derive from obs_encoder and action_type" (see `__post_init__`).
     normalization_mapping: dict[str, NormalizationMode] = field(default_factory=dict)
@@ -94,6 +99,7 @@ class SequenceConfig(PreTrainedConfig):
         check_choice("action_type", self.action_type, ACTION_TYPES)
         check_choice("window_start", self.window_start, WINDOW_STARTS)
         check_choice("inference_mode", self.inference_mode, INFERENCE_MODES)
+        check_choice("lr_schedule", self.lr_schedule, LR_SCHEDULES)
         if self.window_size < 1:
             raise ValueError(f"window_size must be >= 1, got {self.window_size}.")
         if not self.normalization_mapping:
@@ -131,8 +137,8 @@ class SequenceConfig(PreTrainedConfig):
     def get_optimizer_preset(self) -> AdamConfig:
         return AdamConfig(lr=self.optimizer_lr, grad_clip_norm=self.optimizer_grad_clip_norm)
 
-    def get_scheduler_preset(self) -> None:
-        return None
+    def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:
+        return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=0) if self.lr_schedule == "cosine" else None
 
     def validate_features(self) -> None:
         state = (self.input_features or {}).get(OBS_STATE)

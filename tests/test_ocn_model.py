@@ -548,6 +548,23 @@ def test_optimizer_groups_slow_the_controller_only():
     assert [group["lr"] for group in optimizer.param_groups] == pytest.approx([1e-3, 1e-4])
 
 
+def test_cosine_schedule_anneals_every_group_to_zero_keeping_the_controller_slower():
+    assert make_policy().config.get_scheduler_preset() is None
+    policy = make_policy(controller_lr_scale=0.1, lr_schedule="cosine")
+    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
+    scheduler = policy.config.get_scheduler_preset().build(optimizer, num_training_steps=100)
+    seen = []
+    for _ in range(100):
+        seen.append([group["lr"] for group in optimizer.param_groups])
+        optimizer.step()
+        scheduler.step()
+    assert seen[0] == pytest.approx([1e-3, 1e-4])
+    assert seen[50] == pytest.approx([5e-4, 5e-5])
+    assert seen[99][0] < 1e-6 and seen[99][1] < 1e-7
+    with pytest.raises(ValueError, match="lr_schedule"):
+        make_policy(lr_schedule="linear")
+
+
 # ---- MoE baseline (hierarchy="moe") ----------------------------------------------------------------
 
 

@@ -169,6 +169,9 @@ def test_ompn_checkpoints_are_finetuned_alone_and_in_craft_only(untrained_ompn, 
             [*base, "--checkpoint", str(continuous), "--out", str(tmp_path / "c")],
         "an `ompn` checkpoint has no controller to temper":
             [*base, *ompn, "--temperature", "2", "--out", str(tmp_path / "d")],
+        "encoder and continuous actions: OMPN's RL form is finetuned in Craft only":
+            ["--tasks", "124", "--frames", "10", "--envs", "2", "--checkpoint", str(continuous),
+             "--out", str(tmp_path / "e")],
     }
     assert_refused(cases, capsys)
-    assert not any((tmp_path / name).exists() for name in "abcd")
+    assert not any((tmp_path / name).exists() for name in "abcde")

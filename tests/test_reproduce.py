@@ -69,3 +69,13 @@ def test_a_moved_dataset_is_still_reused_but_one_of_unknown_origin_is_not(tmp_pa
     (tmp_path / "new" / "meta" / "ocn_recording.json").unlink()
     with pytest.raises(SystemExit, match="no record_demos session"):
         check_recorded_as(tmp_path / "new", _recording(tmp_path / "new"))
+
+
+def test_a_cosine_imitation_run_gets_its_own_folder_and_policy_setting(tmp_path):
+    from tools.reproduce.imitation import VARIANTS, run_dir, schedule_overrides
+
+    constant, cosine = (run_dir(tmp_path, VARIANTS[0], 1, schedule) for schedule in ("constant", "cosine"))
+    assert constant == tmp_path / "imitation_s1" / "3options_T10" / "seed1"
+    assert cosine == tmp_path / "imitation_s1" / "3options_T10_cosine" / "seed1"
+    assert schedule_overrides("constant") == {}
+    assert schedule_overrides("cosine") == {"lr_schedule": "cosine"}

@@ -83,7 +83,7 @@ from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ompn import OMPNPolicy
 from policies.sequence import SequenceConfig
 from tools.episode_parsing import Processor, load_policy
-from tools.ompn_rl import ompn_rl_form
+from tools.ompn_rl import finetunable_ompn, ompn_for_tasks
 from tools.worlds import World, craft, dial, policy_world
 
 # The new controller's softmax temperature unless --temperature says otherwise (module docstring).
@@ -369,9 +369,10 @@ def _start(args: argparse.Namespace) -> Start:
     loaded = [load_policy(path) for path in args.checkpoint]
     names = [str(path) for path in args.checkpoint]
     if any(isinstance(policy, OMPNPolicy) for policy, _, _ in loaded):
+        ompn = finetunable_ompn([policy for policy, _, _ in loaded], names, args.temperature)
         world = craft(args.mode)
         tasks, labels = _new_tasks(world, args.tasks)
-        policy = ompn_rl_form([policy for policy, _, _ in loaded], names, tasks, args.temperature)
+        policy = ompn_for_tasks(ompn, tasks)
         return Start(policy, world, tasks, labels, loaded[0][1], loaded[0][2])
     sources = [option_source(policy, name) for (policy, _, _), name in zip(loaded, names, strict=True)]
     world = policy_world(sources[0].config.state_dim, sources[0].config.action_dim, args.mode)

@@ -2,8 +2,8 @@
 
 OMPN's levels talk through continuous memory, bottom-up and top-down, so it cannot be split into
 options under a new controller; the paper keeps its high level and finetunes it. `ocn-finetune
---checkpoint OMPN_CKPT` builds `ompn_rl_form` (one checkpoint, Craft only) and `tools.ppo` trains
-it through `MemoryActor`: every env decides at every step, its choice is the primitive action it
+--checkpoint OMPN_CKPT` checks the checkpoint (`finetunable_ompn`: one checkpoint, Craft only), gives
+it the new tasks (`ompn_for_tasks`) and `tools.ppo` trains it through `MemoryActor`: every env decides at every step, its choice is the primitive action it
 sampled, and every weight is trained with the critic. The result stays an `ompn` checkpoint.
 """
 
@@ -39,11 +39,12 @@ def ompn_for_tasks(policy: OMPNPolicy, tasks: Sequence[str]) -> OMPNPolicy:
     return copy.eval()
 
 
-def ompn_rl_form(
-    policies: Sequence[PreTrainedPolicy], names: Sequence[str], tasks: Sequence[str], temperature: float | None
+def finetunable_ompn(
+    policies: Sequence[PreTrainedPolicy], names: Sequence[str], temperature: float | None
 ) -> OMPNPolicy:
-    """`ompn_for_tasks` of the one OMPN among `policies` (checkpoints named `names`), after refusing
-    what OMPN's RL form cannot do: pool it with other checkpoints, run outside Craft, take a temperature."""
+    """The one OMPN among `policies` (checkpoints named `names`), after refusing what OMPN's RL form
+    cannot do: pool it with other checkpoints, run outside Craft, take a temperature. Called before
+    --tasks is read, so that a Dial OMPN is refused for what it is, not for its PINs."""
     if len(policies) > 1:
         raise ValueError(
             f"Cannot pool {', '.join(names)}: an `ompn` checkpoint has no options to pool, so its whole network "
@@ -58,7 +59,7 @@ def ompn_rl_form(
         )
     if temperature is not None:
         raise ValueError("--temperature is the OCN controller's: an `ompn` checkpoint has no controller to temper.")
-    return ompn_for_tasks(policy, tasks)
+    return policy
 
 
 class MemoryActor:

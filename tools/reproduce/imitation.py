@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from policies.sequence import LR_SCHEDULES
 from tools.bench import RESULTS
 
 from tools.reproduce.report import checks_table, provenance, write_result_files
@@ -60,14 +61,23 @@ def s1_data(args: argparse.Namespace) -> Path:
     return data
 
 
-def run_dir(workdir: Path, variant: Variant, seed: int) -> Path:
-    return workdir / "imitation_s1" / _slug(variant.name) / f"seed{seed}"
+def run_dir(workdir: Path, variant: Variant, seed: int, lr_schedule: str = "constant") -> Path:
+    """A run's folder; runs under a cosine schedule get their own, so both kinds live in one workdir."""
+    schedule = "" if lr_schedule == "constant" else f"_{lr_schedule}"
+    return workdir / "imitation_s1" / f"{_slug(variant.name)}{schedule}" / f"seed{seed}"
+
+
+def schedule_overrides(lr_schedule: str) -> dict[str, str]:
+    """`--policy.lr_schedule` for a run, spelled out only when it is not the paper's constant lr, so
+    that runs trained before the option existed keep their command and are reused."""
+    return {} if lr_schedule == "constant" else {"lr_schedule": lr_schedule}
 
 
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:
     """Train (unless done before) and evaluate one seed of one variant; returns its record."""
-    folder = run_dir(args.workdir, variant, seed)
-    trained = train_policy(train_settings(args), data, S1_REPO_ID, folder, seed, variant.overrides)
+    folder = run_dir(args.workdir, variant, seed, args.lr_schedule)
+    overrides = {**variant.overrides, **schedule_overrides(args.lr_schedule)}
+    trained = train_policy(train_settings(args), data, S1_REPO_ID, folder, seed, overrides)
     return evaluate_run(folder, trained, data, S1_REPO_ID, args.rollouts, {"variant": variant.name, "seed": seed})
 
 
@@ -144,8 +154,8 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
         f"{result['date']}. Training: `lerobot-train`, {result['settings']['steps']} steps of "
-        f"{result['settings']['batch_size']} windows (episodes), controller learning-rate scale "
-        f"{result['settings']['controller_lr_scale']}; scores: `ocn-eval` on the validation split "
+        f"{result['settings']['batch_size']} windows (episodes), {result['settings']['lr_schedule']} learning rate, "
+        f"controller learning-rate scale {result['settings']['controller_lr_scale']}; scores: `ocn-eval` on the validation split "
         f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Runs finished: "
         f"{result['runs_finished']} of {result['runs_planned']}; wall time of this invocation "
         f"{result['wall_s'] / 60:.0f} min (runs finished before it were reused; each run's training time is below).",
@@ -219,6 +229,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--seeds", type=int, default=5, help="seeds of the main variant (3 options, T=10)")
     s1.add_argument("--ablation-seeds", type=int, default=1, help="seeds of each ablation; 0 skips them")
     add_training_arguments(s1)
+    s1.add_argument("--lr-schedule", choices=LR_SCHEDULES, default="constant",
+                    help="lr over each run: the paper's constant, or cosine annealing to 0 (OCNConfig.lr_schedule)")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
     s1.set_defaults(func=imitation_s1)
