@@ -87,7 +87,8 @@ class SequenceConfig(PreTrainedConfig):
     optimizer_lr: float = 1e-3
     optimizer_grad_clip_norm: float = 10.0
     # "constant" is the paper's Adam at a fixed lr; "cosine" anneals every parameter group's lr to 0
-    # over `lerobot-train --steps` (no warm-up), for runs that stop while the NLL is still falling.
+    # over `lerobot-train --steps` (no warm-up). On S1, cosine from step 0 keeps OCN's options from
+    # splitting (results/imitation_s1_lr_schedule): use it to continue a trained model, if at all.
     lr_schedule: str = "constant"
 
     # Empty means "derive from obs_encoder and action_type" (see `__post_init__`).
