@@ -3,8 +3,9 @@
 OMPN's levels talk through continuous memory, bottom-up and top-down, so it cannot be split into
 options under a new controller; the paper keeps its high level and finetunes it. `ocn-finetune
 --checkpoint OMPN_CKPT` checks the checkpoint (`finetunable_ompn`: one checkpoint, Craft only), gives
-it the new tasks (`ompn_for_tasks`) and `tools.ppo` trains it through `MemoryActor`: every env decides at every step, its choice is the primitive action it
-sampled, and every weight is trained with the critic. The result stays an `ompn` checkpoint.
+it the new tasks (`ompn_for_tasks`) and `tools.ppo` trains it through `MemoryActor`: every env
+decides at every step, its choice is the primitive action it sampled, and every weight is trained
+with the critic. The result stays an `ompn` checkpoint.
 """
 
 from __future__ import annotations
