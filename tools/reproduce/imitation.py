@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from policies.sequence import LR_SCHEDULES
+from policies.sequence import LR_SCHEDULES, SequenceConfig
 from tools.bench import RESULTS
 
 from tools.reproduce.report import checks_table, provenance, write_result_files
@@ -24,6 +24,9 @@ from tools.reproduce.runs import TrainSettings, evaluate_run, record_dataset, tr
 
 S1_TASKS = "AC,CD,DA"
 S1_REPO_ID = "local/craft_s1"
+# The policy's own default schedule (the paper's constant lr): runs under it keep the command and
+# folder they had before the schedule could be chosen.
+DEFAULT_LR_SCHEDULE = SequenceConfig.lr_schedule
 METRICS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "diagonal_mean", "off_diagonal_max", "mean_success_rate")
 
 
@@ -61,16 +64,16 @@ def s1_data(args: argparse.Namespace) -> Path:
     return data
 
 
-def run_dir(workdir: Path, variant: Variant, seed: int, lr_schedule: str = "constant") -> Path:
-    """A run's folder; runs under a cosine schedule get their own, so both kinds live in one workdir."""
-    schedule = "" if lr_schedule == "constant" else f"_{lr_schedule}"
+def run_dir(workdir: Path, variant: Variant, seed: int, lr_schedule: str = DEFAULT_LR_SCHEDULE) -> Path:
+    """A run's folder; runs under another schedule get their own, so both kinds live in one workdir."""
+    schedule = "" if lr_schedule == DEFAULT_LR_SCHEDULE else f"_{lr_schedule}"
     return workdir / "imitation_s1" / f"{_slug(variant.name)}{schedule}" / f"seed{seed}"
 
 
 def schedule_overrides(lr_schedule: str) -> dict[str, str]:
-    """`--policy.lr_schedule` for a run, spelled out only when it is not the paper's constant lr, so
-    that runs trained before the option existed keep their command and are reused."""
-    return {} if lr_schedule == "constant" else {"lr_schedule": lr_schedule}
+    """`--policy.lr_schedule` for a run, spelled out only when it is not the default, so that runs
+    trained before the option existed keep their command and are reused."""
+    return {} if lr_schedule == DEFAULT_LR_SCHEDULE else {"lr_schedule": lr_schedule}
 
 
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:
@@ -154,8 +157,9 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
         f"{result['date']}. Training: `lerobot-train`, {result['settings']['steps']} steps of "
-        f"{result['settings']['batch_size']} windows (episodes), {result['settings']['lr_schedule']} learning rate, "
-        f"controller learning-rate scale {result['settings']['controller_lr_scale']}; scores: `ocn-eval` on the validation split "
+        f"{result['settings']['batch_size']} windows (episodes), {result['settings']['lr_schedule']} learning "
+        f"rate, controller learning-rate scale {result['settings']['controller_lr_scale']}; scores: `ocn-eval` "
+        f"on the validation split "
         f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Runs finished: "
         f"{result['runs_finished']} of {result['runs_planned']}; wall time of this invocation "
         f"{result['wall_s'] / 60:.0f} min (runs finished before it were reused; each run's training time is below).",
@@ -229,7 +233,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--seeds", type=int, default=5, help="seeds of the main variant (3 options, T=10)")
     s1.add_argument("--ablation-seeds", type=int, default=1, help="seeds of each ablation; 0 skips them")
     add_training_arguments(s1)
-    s1.add_argument("--lr-schedule", choices=LR_SCHEDULES, default="constant",
+    s1.add_argument("--lr-schedule", choices=LR_SCHEDULES, default=DEFAULT_LR_SCHEDULE,
                     help="lr over each run: the paper's constant, or cosine annealing to 0 (OCNConfig.lr_schedule)")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
