@@ -219,5 +219,6 @@ def test_ocn_eval_scores_a_compile_checkpoint(compile_checkpoint, craft_dataset,
     assert result["policy_type"] == "compile" and 0.0 <= result["f1_tol0"] <= result["f1_tol1"] <= 1.0
     assert 0.0 <= result["align_acc"] <= 1.0 and 0.0 <= result["nmi"] <= 1.0
     assert 0.0 <= result["mean_success_rate"] <= 1.0 and result["option_subtask_success"] is None
-    assert set(result["not_applicable"]) == {"option_subtask_success"} and result["episodes_parsed"] <= 10
+    assert set(result["not_applicable"]) == {"option_subtask_success", "action_nll"} and result["episodes_parsed"] <= 10
+    assert result["action_nll"] is None
     assert list(result["success_rate"]) == ["get wood, get iron", "get iron, get grass"]

@@ -28,8 +28,10 @@ import lerobot_policy_ocn  # noqa: F401  (registers `ocn` and `craft` as LeRobot
 from envs.craft import CraftEnv, CraftExpert, parse_task, task_description
 from envs.craft.lerobot_config import CraftEnvConfig
 from envs.craft.lerobot_env import action_index
+from ocn_data.episodes_table import load_episodes, split_episodes
 from ocn_data.record_demos import main as record_demos
 from policies.ocn import OCNPolicy
+from tools.episode_parsing import load_policy
 from conftest import run_cli
 
 BIN = Path(sys.executable).parent
@@ -294,6 +296,17 @@ def test_ocn_eval_scores_the_checkpoint_on_the_validation_split(trained, tmp_pat
     assert table["subtasks"] == ["A", "C"] and np.array(table["table"]).shape == (3, 2)
     assert list(result["success_rate"]) == [AC]
     assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+    # action_nll, from the parse, is the frame-weighted mean of the training loss's per-window NLL.
+    policy, preprocessor, _ = load_policy(checkpoint)
+    episodes = load_episodes(root, split_episodes(root, "val"))
+    batch = preprocessor({
+        OBS_STATE: torch.from_numpy(episodes.state).float(), ACTION: torch.from_numpy(episodes.action).float(),
+        f"{ACTION}_is_pad": torch.from_numpy(~episodes.mask), "task": list(episodes.tasks),
+    })
+    with torch.no_grad():
+        per_window, _ = policy(batch, reduction="none")
+    frames = torch.from_numpy(episodes.lengths).float()
+    assert result["action_nll"] == pytest.approx(float((per_window * frames).sum() / frames.sum()), rel=1e-4)
 
 
 def test_ocn_eval_names_bad_input(trained, tmp_path, capsys):

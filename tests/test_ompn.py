@@ -217,7 +217,7 @@ def test_ocn_eval_scores_an_ompn_checkpoint(ompn_checkpoint, craft_dataset, tmp_
     assert result["policy_type"] == "ompn" and 0.0 <= result["f1_tol0"] <= result["f1_tol1"] <= 1.0
     assert 0.0 <= result["align_acc"] <= 1.0 and 0.0 <= result["mean_success_rate"] <= 1.0
     assert result["nmi"] is None and result["option_subtask_success"] is None
-    assert set(result["not_applicable"]) == {"nmi", "option_subtask_success"}
+    assert set(result["not_applicable"]) == {"nmi", "option_subtask_success"} and result["action_nll"] > 0.0
     assert list(result["success_rate"]) == ["get wood, get iron", "get iron, get grass"]
     assert not out.with_suffix(".png").exists()
     assert ocn_eval.main([*base, "--out", str(tmp_path / "x.json"), "--mcap", str(tmp_path / "x.mcap")]) == 2

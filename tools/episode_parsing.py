@@ -62,11 +62,14 @@ class Segmenter(Protocol):
 
 @dataclass(frozen=True)
 class Parser:
-    """A model type's entry: its `segment` function and, for a model whose parses may come without
-    per-step labels, `no_labels`: why they have none (reported in place of NMI when they do)."""
+    """A model type's entry: its `segment` function; for a model whose parses may come without
+    per-step labels, `no_labels`: why they have none (reported in place of NMI when they do); and for
+    a model whose parse gives no per-step action likelihood, `no_action_nll`: why (in place of
+    `action_nll`)."""
 
     segment: Segmenter
     no_labels: str | None = None
+    no_action_nll: str | None = None
 
 
 def load_policy(path: Path, device: str = "cpu") -> tuple[PreTrainedPolicy, Processor, Processor]:
@@ -185,6 +188,10 @@ PARSERS: dict[str, Parser] = {
             "compILE with Gaussian latents has no discrete latent to label steps with (NMI needs "
             "categories); train it with --policy.latent_type=concrete for per-step labels."
         ),
+        no_action_nll=(
+            "compILE's likelihood of an action depends on the segment it falls in, a sum over soft "
+            "segmentations rather than one per-step prediction."
+        ),
     ),
 }
 
@@ -194,6 +201,16 @@ def parser_of(policy: PreTrainedPolicy) -> Parser:
     if policy.name not in PARSERS:
         raise ValueError(f"No parse is defined for `{policy.name}` policies; the parsed types are {sorted(PARSERS)}.")
     return PARSERS[policy.name]
+
+
+def action_nll(
+    policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int = 1024
+) -> float:
+    """Mean NLL of the demonstrated actions per real frame, each whole episode run through the policy's
+    parse from its first frame: the behaviour-cloning fit, to compare between splits (a train NLL far
+    below the validation one is memorised demonstrations)."""
+    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("action_log_prob",))
+    return -float(np.concatenate([episode["action_log_prob"] for episode in parsed]).mean())
 
 
 def segment_episodes(

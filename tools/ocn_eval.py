@@ -3,16 +3,17 @@
 On the split's episodes (default "val") it runs the policy over each whole episode and scores its
 parse against the ground-truth subtasks with the shared parsing metrics: F1 at tolerance 0 and 1
 and task alignment from the predicted boundaries, NMI from per-step labels (OCN: the chosen option
-argmax p^c). In the dataset's world (Craft or Dial, read from the dataset; `tools.worlds`) it
-measures the whole policy's free-run success per task (Dial: per PIN) and, for a policy made of
+argmax p^c), and the mean NLL per frame of the demonstrated actions (`action_nll`: OCN, OMPN).
+In the dataset's world (Craft or Dial, read from the dataset; `tools.worlds`) it measures the
+whole policy's free-run success per task (Dial: per PIN) and, for a policy made of
 options, each frozen option alone on each subtask (paper table 1; Dial: each digit), drawn as a
 PNG beside the JSON. With --oracle-tasks it also runs the frozen options on other tasks (the
 finetuning tasks, say) under an oracle controller (`tools.rollouts.oracle_controller_success`):
 the ceiling a finetuned controller over these options can reach. Every model type parses through
 `tools.episode_parsing` (OMPN: the top-k steps of its expected expansion; compILE: its argmax
 segment boundaries, labelled by its concrete latents); what does not apply to a model (OMPN has
-no labels, OMPN and compILE no options) is null in the JSON, with the reason under
-"not_applicable".
+no labels, OMPN and compILE no options, compILE no per-step NLL) is null in the JSON, with the
+reason under "not_applicable".
 """
 
 from __future__ import annotations
@@ -97,7 +98,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from ocn_data.episodes_table import load_episodes, read_info, split_episodes
     from ocn_data.mcap_log import check_new_log
     from tools import rollouts
-    from tools.episode_parsing import load_policy, parser_of, score_segmentations
+    from tools.episode_parsing import action_nll, load_policy, parser_of, score_segmentations
     from tools.worlds import world_of
 
     if args.mcap is not None:
@@ -148,6 +149,11 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         )
     if scores["nmi"] is None and parser.no_labels:
         not_applicable["nmi"] = parser.no_labels
+    nll = None
+    if parser.no_action_nll:
+        not_applicable["action_nll"] = parser.no_action_nll
+    else:
+        nll = action_nll(policy, preprocessor, episodes, args.batch_size)
     log = None
     if args.mcap is not None:
         from tools.rollout_mcap import RolloutMcapWriter
@@ -166,6 +172,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         oracle = _oracle(policy, preprocessor, postprocessor, world, oracle_tasks, args, option_table)
     return {
         **scores,
+        "action_nll": nll,
         "option_subtask_success": option_table,
         **({"oracle_controller": oracle} if oracle is not None else {}),
         **({"not_applicable": not_applicable} if not_applicable else {}),
