@@ -45,11 +45,13 @@ class EpisodeParse:
 @dataclass
 class Segmentation:
     """One episode's parse as the shared metrics read it: `boundaries`, the last step of each
-    predicted segment (sorted), and `labels` [T], a per-step option label, or None for a model
-    without discrete options (NMI needs labels)."""
+    predicted segment (sorted); `labels` [T], a per-step option label, or None for a model
+    without discrete options (NMI needs labels); and `action_log_prob` [T], the log-likelihood of
+    each demonstrated action under the same parse, or None for a model that has no per-step one."""
 
     boundaries: np.ndarray
     labels: np.ndarray | None
+    action_log_prob: np.ndarray | None = None
 
 
 class Segmenter(Protocol):
@@ -138,8 +140,11 @@ def _ocn_segmentations(
     policy: OCNPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int
 ) -> list[Segmentation]:
     """OCN: the chosen option argmax p^c labels each step; a segment ends where it changes."""
-    options = [parse.option for parse in parse_episodes(policy, preprocessor, episodes, batch_size)]
-    return [Segmentation(boundaries_from_labels(option), option) for option in options]
+    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("option", "action_log_prob"))
+    return [
+        Segmentation(boundaries_from_labels(episode["option"]), episode["option"], episode["action_log_prob"])
+        for episode in parsed
+    ]
 
 
 def _ompn_segmentations(
@@ -149,9 +154,10 @@ def _ompn_segmentations(
     convention), k = the episode's number of ground-truth boundaries (OMPN is told how many, as in
     its own evaluation)."""
     counts = [boundaries_from_labels(episodes.subtask_index[i, :n]).size for i, n in enumerate(episodes.lengths)]
-    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("depth",))
+    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("depth", "action_log_prob"))
     return [
-        Segmentation(expansion_boundaries(episode["depth"], k), None) for episode, k in zip(parsed, counts, strict=True)
+        Segmentation(expansion_boundaries(episode["depth"], k), None, episode["action_log_prob"])
+        for episode, k in zip(parsed, counts, strict=True)
     ]
 
 
@@ -203,14 +209,14 @@ def parser_of(policy: PreTrainedPolicy) -> Parser:
     return PARSERS[policy.name]
 
 
-def action_nll(
-    policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int = 1024
-) -> float:
-    """Mean NLL of the demonstrated actions per real frame, each whole episode run through the policy's
-    parse from its first frame: the behaviour-cloning fit, to compare between splits (a train NLL far
-    below the validation one is memorised demonstrations)."""
-    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("action_log_prob",))
-    return -float(np.concatenate([episode["action_log_prob"] for episode in parsed]).mean())
+def action_nll(parses: Sequence[Segmentation]) -> float:
+    """Mean NLL of the demonstrated actions per real frame, from parses of whole episodes (each run
+    through the policy from its first frame): the behaviour-cloning fit, to compare between splits
+    (a train NLL far below the validation one is memorised demonstrations)."""
+    missing = sum(parse.action_log_prob is None for parse in parses)
+    if missing:
+        raise ValueError(f"{missing} of {len(parses)} parses carry no per-step action log-likelihood.")
+    return -float(np.concatenate([parse.action_log_prob for parse in parses]).mean())
 
 
 def segment_episodes(

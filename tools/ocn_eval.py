@@ -153,7 +153,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     if parser.no_action_nll:
         not_applicable["action_nll"] = parser.no_action_nll
     else:
-        nll = action_nll(policy, preprocessor, episodes, args.batch_size)
+        nll = action_nll(parses)
     log = None
     if args.mcap is not None:
         from tools.rollout_mcap import RolloutMcapWriter
