@@ -79,3 +79,21 @@ def test_a_cosine_imitation_run_gets_its_own_folder_and_policy_setting(tmp_path)
     assert cosine == tmp_path / "imitation_s1" / "3options_T10_cosine" / "seed1"
     assert schedule_overrides("constant") == {}
     assert schedule_overrides("cosine") == {"lr_schedule": "cosine"}
+
+
+def test_imitation_runs_can_be_limited_to_chosen_variants():
+    from tools.reproduce import imitation
+
+    def planned(*argv):
+        parser = imitation.argparse.ArgumentParser()
+        imitation.add_parser(parser.add_subparsers())
+        args = parser.parse_args(["imitation-s1", *argv])
+        return [(imitation._slug(variant.name), seed) for variant, seed in imitation.planned_runs(args)]
+
+    assert planned("--seeds", "2") == [("3options_T10", 1), ("3options_T10", 2), ("2options_T10", 1),
+                                       ("6options_T10", 1), ("3options_T1", 1)]
+    assert planned("--seeds", "2", "--ablation-seeds", "0") == [("3options_T10", 1), ("3options_T10", 2)]
+    assert planned("--variants", "6options_T10,3options_T10", "--seeds", "1", "--ablation-seeds", "2") == [
+        ("3options_T10", 1), ("6options_T10", 1), ("6options_T10", 2)]
+    with pytest.raises(SystemExit, match="unknown \\['7options'\\]"):
+        planned("--variants", "7options")

@@ -187,17 +187,28 @@ def markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def planned_runs(args: argparse.Namespace) -> list[tuple[Variant, int]]:
+    """(variant, seed) of every run the invocation makes, in order: the main variant's `--seeds`, then
+    each ablation's `--ablation-seeds`, of the `--variants` chosen (all by default)."""
+    slugs = {_slug(variant.name): variant for variant in VARIANTS}
+    chosen = list(slugs) if args.variants is None else args.variants.split(",")
+    unknown = sorted(set(chosen) - set(slugs))
+    if unknown:
+        raise SystemExit(f"--variants: unknown {unknown}; the study's variants are {', '.join(slugs)}.")
+    return [
+        (variant, seed)
+        for slug, variant in slugs.items()
+        if slug in chosen
+        for seed in range(1, 1 + (args.seeds if variant.main else args.ablation_seeds))
+    ]
+
+
 def imitation_s1(args: argparse.Namespace) -> int:
     """Every planned run in turn; the results files are rewritten after each one, so a reproduction
     stopped part-way leaves results for the runs it finished (the files say how many)."""
     started = time.perf_counter()
+    planned = planned_runs(args)
     data = s1_data(args)
-    planned = [
-        (variant, seed)
-        for variant in VARIANTS
-        if variant.main or args.ablation_seeds > 0
-        for seed in range(1, 1 + (args.seeds if variant.main else args.ablation_seeds))
-    ]
     records: list[dict[str, Any]] = []
     for variant, seed in planned:
         records.append(run_one(args, data, variant, seed))
@@ -232,6 +243,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     s1.add_argument("--seeds", type=int, default=5, help="seeds of the main variant (3 options, T=10)")
     s1.add_argument("--ablation-seeds", type=int, default=1, help="seeds of each ablation; 0 skips them")
+    s1.add_argument("--variants", default=None,
+                    help=f"comma-separated variants to run, of {','.join(_slug(v.name) for v in VARIANTS)} "
+                         "(default: all); the results files then cover those runs")
     add_training_arguments(s1)
     s1.add_argument("--lr-schedule", choices=LR_SCHEDULES, default=DEFAULT_LR_SCHEDULE,
                     help="lr over each run: the paper's constant, or cosine annealing to 0 (OCNConfig.lr_schedule)")
