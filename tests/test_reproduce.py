@@ -1,4 +1,5 @@
-"""ocn-reproduce reuses a finished run, or a recorded dataset, only when the same settings made it."""
+"""ocn-reproduce reuses a finished run, or a recorded dataset, only when the same settings made it; it plans
+the chosen runs and hands `lerobot-train` any train split, however long."""
 
 import json
 
@@ -6,6 +7,8 @@ import pytest
 
 from ocn_data.record_demos import main as record_demos
 from tools.reproduce.runs import check_recorded_as, check_reusable, record_dataset
+
+from conftest import CRAFT_REPO_ID
 
 COMMAND = "/venv/bin/lerobot-train --policy.type=ocn --dataset.root={root} --steps={steps} --output_dir={root}/out"
 
@@ -97,3 +100,22 @@ def test_imitation_runs_can_be_limited_to_chosen_variants():
         ("3options_T10", 1), ("6options_T10", 1), ("6options_T10", 2)]
     with pytest.raises(SystemExit, match="unknown \\['7options'\\]"):
         planned("--variants", "7options")
+
+
+def test_a_train_split_too_long_for_one_argument_reaches_lerobot_train_through_a_file(craft_dataset, tmp_path,
+                                                                                     monkeypatch):
+    import subprocess
+
+    from ocn_data.episodes_table import split_episodes
+    from tools.reproduce import runs
+    from tools.reproduce.runs import TrainSettings, train_command
+
+    monkeypatch.setattr(runs, "MAX_SPLIT_ARGUMENT", 10)  # every split counts as too long
+    settings = TrainSettings(steps=1, batch_size=4, window_size=24, num_workers=0, policy={"hidden_size": 8})
+    command = train_command(settings, craft_dataset, CRAFT_REPO_ID, tmp_path / "train", 1, {})
+    assert command[4] == f"--config_path={tmp_path / 'train_split.json'}"
+    assert not any(word.startswith("--dataset.episodes") for word in command)
+    subprocess.run(command, check=True, capture_output=True)
+    saved = json.loads((tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "train_config.json").read_text())
+    assert saved["dataset"]["episodes"] == [int(e) for e in split_episodes(craft_dataset, "train")]
+    assert saved["dataset"]["repo_id"] == CRAFT_REPO_ID and saved["policy"]["hidden_size"] == 8

@@ -18,6 +18,8 @@ import numpy as np
 from tools import console_script
 
 SAVE_EVERY = 1000  # lerobot-train checkpoints this often by default, so a stopped run resumes from its last one
+# Linux caps one command-line argument at 128 KiB; a train split listed in more goes through a file.
+MAX_SPLIT_ARGUMENT = 100_000
 
 
 def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int, seed: int, env: str = "craft") -> None:
@@ -91,17 +93,29 @@ def train_command(
     """The `lerobot-train` call of one run on the dataset's train split."""
     from ocn_data.episodes_table import split_episodes
 
-    train = split_episodes(data, "train")
+    train = [int(episode) for episode in split_episodes(data, "train")]
     command = [
         console_script("lerobot-train"), f"--policy.type={settings.policy_type}", f"--dataset.repo_id={repo_id}",
-        f"--dataset.root={data}",
-        f"--dataset.episodes=[{','.join(map(str, train))}]", "--policy.device=cpu", "--policy.push_to_hub=false",
+        f"--dataset.root={data}", split_argument(train, out), "--policy.device=cpu", "--policy.push_to_hub=false",
         "--wandb.enable=false", "--env_eval_freq=0", f"--steps={settings.steps}", f"--batch_size={settings.batch_size}",
         f"--num_workers={settings.num_workers}", f"--save_freq={min(settings.steps, settings.save_every)}",
         "--log_freq=50",
         f"--seed={seed}", f"--policy.window_size={settings.window_size}", f"--output_dir={out}",
     ]
     return command + [f"--policy.{key}={value}" for key, value in {**settings.policy, **overrides}.items()]
+
+
+def split_argument(train: list[int], out: Path) -> str:
+    """`--dataset.episodes=[...]` naming the train split; for a split too long for one argument (the
+    60,000-demonstrations-per-task study lists 144,000 episodes), `--config_path` to a JSON beside `out`
+    that holds it: `lerobot-train` reads that file first and the other arguments on top of it."""
+    listed = f"--dataset.episodes=[{','.join(map(str, train))}]"
+    if len(listed) <= MAX_SPLIT_ARGUMENT:
+        return listed
+    path = out.parent / f"{out.name}_split.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"dataset": {"episodes": train}}) + "\n")
+    return f"--config_path={path}"
 
 
 def train_policy(
