@@ -119,3 +119,14 @@ def test_a_train_split_too_long_for_one_argument_reaches_lerobot_train_through_a
     saved = json.loads((tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "train_config.json").read_text())
     assert saved["dataset"]["episodes"] == [int(e) for e in split_episodes(craft_dataset, "train")]
     assert saved["dataset"]["repo_id"] == CRAFT_REPO_ID and saved["policy"]["hidden_size"] == 8
+
+
+def test_a_run_lists_the_machines_that_trained_it(tmp_path):
+    from tools.reproduce.runs import machine_name, trained_on
+
+    assert trained_on(tmp_path) == []
+    invocations = [{"from_step": 0, "wall_s": 1.0}, {"from_step": 1000, "wall_s": 2.0, "machine": "X (2 cores)"},
+                   {"from_step": 2000, "wall_s": 2.0, "machine": "X (2 cores)"}, {"from_step": 3000, "wall_s": 2.0,
+                                                                                  "machine": machine_name()}]
+    (tmp_path / "train_wall_s.json").write_text(json.dumps({"invocations": invocations, "total": 7.0}))
+    assert trained_on(tmp_path) == ["not recorded", "X (2 cores)", machine_name()]

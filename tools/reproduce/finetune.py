@@ -147,6 +147,7 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
     return {
         "method": method.name, "reward": reward, "seed": seed, "command": shown,
         "clone_wall_s": [run.train_wall_s for run in clones],
+        "clones_trained_on": [run.trained_on for run in clones],
         "summary": json.loads(summary_path.read_text()),
         "curve": rows,
     }

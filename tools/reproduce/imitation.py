@@ -173,14 +173,16 @@ def markdown(result: dict[str, Any]) -> str:
     for name, row in result["summary"].items():
         cells = " | ".join(f"{row[m]['mean']:.3f} ({row[m]['std']:.3f})" for m in METRICS)
         lines.append(f"| {name} | {len(row['seeds'])} | {cells} |")
-    lines += ["", "## Every run", "", "| variant | seed | F1@0 | F1@1 | align | NMI | diagonal | success per task | train s |",
-              "|---|---|---|---|---|---|---|---|---|"]
+    lines += ["", "## Every run", "",
+              "| variant | seed | F1@0 | F1@1 | align | NMI | diagonal | success per task | train s | trained on |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["runs"]:
         s = r["scores"]
         success = ", ".join(f"{v:.2f}" for v in s["success_rate"].values())
         lines.append(
             f"| {r['variant']} | {r['seed']} | {s['f1_tol0']:.3f} | {s['f1_tol1']:.3f} | {s['align_acc']:.3f} | "
-            f"{s['nmi']:.3f} | {', '.join(f'{d:.2f}' for d in s['diagonal'])} | {success} | {r['train_wall_s']} |"
+            f"{s['nmi']:.3f} | {', '.join(f'{d:.2f}' for d in s['diagonal'])} | {success} | {r['train_wall_s']} | "
+            f"{'; '.join(r.get('trained_on') or ['not recorded'])} |"
         )
     lines += ["", "Plots: `imitation_s1.png` (every metric, seeds as dots), `imitation_s1_option_table.png` "
               "(option x subtask success of the first main-variant seed).", ""]

@@ -170,6 +170,7 @@ def run_one(args: argparse.Namespace, data: Path, episodes: EpisodeArrays, metho
     scored = score_run(folder, scored_steps(settings.steps, settings.save_every), episodes, args.threads)
     return {
         "method": method.name, "seed": seed, "train_command": trained.command, "train_wall_s": trained.train_wall_s,
+        "trained_on": trained.trained_on,
         "score_wall_s": round(sum(row["wall_s"] for row in scored), 1),
         "hyperparameters": hyperparameters(method, trained.checkpoint, settings),
         "checkpoints": scored,

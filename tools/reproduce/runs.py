@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from tools import console_script
+from tools.bench import machine
 
 SAVE_EVERY = 1000  # lerobot-train checkpoints this often by default, so a stopped run resumes from its last one
 # Linux caps one command-line argument at 128 KiB; a train split listed in more goes through a file.
@@ -79,12 +80,13 @@ class TrainSettings:
 
 @dataclass
 class TrainedRun:
-    """A finished training run: its checkpoint, the command shown in records, and its wall time
-    (None when an earlier reproduction trained all of it and kept no timing)."""
+    """A finished training run: its checkpoint, the command shown in records, its wall time (None when
+    an earlier reproduction trained all of it and kept no timing) and the machines that trained it."""
 
     checkpoint: Path
     command: str
     train_wall_s: float | None
+    trained_on: list[str] = field(default_factory=list)
 
 
 def train_command(
@@ -126,7 +128,21 @@ def train_policy(
     shown = " ".join(command[:4] + ["--dataset.episodes=[<train split>]"] + command[5:])
     check_reusable(run_dir, shown)
     wall = train(settings, command, shown, run_dir)
-    return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall)
+    return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall, trained_on(run_dir))
+
+
+def machine_name() -> str:
+    """This machine in a few words, for records that gather runs made on several machines."""
+    here = machine()
+    return f"{here['cpu']} ({here['cores']} cores)"
+
+
+def trained_on(run_dir: Path) -> list[str]:
+    """The machines of a run's training invocations, in order, each once ("not recorded" for those
+    made before invocations recorded their machine)."""
+    times_path = run_dir / "train_wall_s.json"
+    invocations = json.loads(times_path.read_text())["invocations"] if times_path.exists() else []
+    return list(dict.fromkeys(invocation.get("machine", "not recorded") for invocation in invocations))
 
 
 def evaluate_run(folder: Path, trained: TrainedRun, data: Path, repo_id: str, rollouts: int,
@@ -150,6 +166,8 @@ def evaluate_run(folder: Path, trained: TrainedRun, data: Path, repo_id: str, ro
     record = {
         **labels,
         "train_wall_s": trained.train_wall_s,
+        "trained_on": trained.trained_on,
+        "evaluated_on": machine_name(),
         "eval_wall_s": round(time.perf_counter() - started, 1),
         "train_command": trained.command,
         "scores": scores,
@@ -189,7 +207,7 @@ def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path
     with open(run_dir / "train.log", "a") as log:
         subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT, env=env)
     wall = round(time.perf_counter() - started, 1)
-    times["invocations"].append({"from_step": done, "wall_s": wall})
+    times["invocations"].append({"from_step": done, "wall_s": wall, "machine": machine_name()})
     times["total"] = round(times["total"] + wall, 1)
     times_path.write_text(json.dumps(times, indent=2) + "\n")
     return times["total"]
