@@ -22,7 +22,9 @@ from lerobot.optim import AdamConfig
 from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-OBS_ENCODERS = ("craft", "identity")
+# Encoders of Craft's compact state (see policies/ocn/encoders.py); "identity" takes float states as they are.
+CRAFT_ENCODERS = ("craft", "craft_full_view")
+OBS_ENCODERS = (*CRAFT_ENCODERS, "identity")
 ACTION_TYPES = ("discrete", "continuous")
 WINDOW_STARTS = ("episode", "any")
 INFERENCE_MODES = ("sample", "greedy")
@@ -108,7 +110,7 @@ class SequenceConfig(PreTrainedConfig):
 
     def _default_normalization(self) -> dict[str, NormalizationMode]:
         """Craft states are symbolic ids and discrete actions are indices: neither may be rescaled."""
-        state = NormalizationMode.IDENTITY if self.obs_encoder == "craft" else NormalizationMode.MEAN_STD
+        state = NormalizationMode.IDENTITY if self.obs_encoder in CRAFT_ENCODERS else NormalizationMode.MEAN_STD
         action = NormalizationMode.IDENTITY if self.action_type == "discrete" else NormalizationMode.MEAN_STD
         return {"STATE": state, "ACTION": action}
 
@@ -148,10 +150,10 @@ class SequenceConfig(PreTrainedConfig):
         action = (self.output_features or {}).get(ACTION)
         if action is None:
             raise ValueError(f"{self.model_name} needs an `{ACTION}` output feature.")
-        if self.obs_encoder == "craft" and tuple(state.shape) != (CRAFT_STATE_DIM,):
+        if self.obs_encoder in CRAFT_ENCODERS and tuple(state.shape) != (CRAFT_STATE_DIM,):
             raise ValueError(
-                f"The craft encoder expects a compact state of shape ({CRAFT_STATE_DIM},), got {state.shape}; "
-                "float states (Dial) take --policy.obs_encoder=identity."
+                f"The {self.obs_encoder} encoder expects a compact state of shape ({CRAFT_STATE_DIM},), "
+                f"got {state.shape}; float states (Dial) take --policy.obs_encoder=identity."
             )
         if self.action_type == "discrete" and tuple(action.shape) != (1,):
             raise ValueError(

@@ -28,7 +28,19 @@ from envs.craft import (
     task_description,
 )
 from envs.craft.layout import EMPTY_BORDERED
-from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, EGO_DIM, FACING, INVENTORY, MAP_DIM, OBS_HIGH, OMPN_DIM
+from envs.craft.observation import (
+    AGENT_COL,
+    AGENT_ROW,
+    CELLS,
+    EGO_DIM,
+    FACING,
+    FULL_VIEW_DIM,
+    INVENTORY,
+    MAP_DIM,
+    OBS_HIGH,
+    OMPN_DIM,
+    full_view_features,
+)
 from envs.craft.world import (
     AXE,
     BED,
@@ -488,17 +500,26 @@ def test_ompn_features_hand_built_state():
     torch.testing.assert_close(out[2, 0], feats)
 
 
-def reference_ompn_features(state: np.ndarray) -> np.ndarray:
-    """OMPN features of one compact state, entry by entry as the observation module documents them."""
+def reference_window(state: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The bordered 10x10 grid of one compact state, and the one-hot [size * size * N_KINDS] of the
+    size x size window centred on the agent (cells off the grid count as boundary), entry by entry."""
     grid = np.full((GRID_SIZE, GRID_SIZE), BOUNDARY)
     grid[1:-1, 1:-1] = state[CELLS].reshape(INTERIOR_SIZE, INTERIOR_SIZE)
-    row, col = state[AGENT_ROW] + 1, state[AGENT_COL] + 1
-    feats = np.zeros(OMPN_DIM, dtype=np.float32)
-    for i in range(5):
-        for j in range(5):
-            r, c = row + i - 2, col + j - 2
+    row, col, radius = state[AGENT_ROW] + 1, state[AGENT_COL] + 1, size // 2
+    window = np.zeros(size * size * N_KINDS, dtype=np.float32)
+    for i in range(size):
+        for j in range(size):
+            r, c = row + i - radius, col + j - radius
             kind = grid[r, c] if 0 <= r < GRID_SIZE and 0 <= c < GRID_SIZE else BOUNDARY
-            feats[(i * 5 + j) * N_KINDS + kind] = 1
+            window[(i * size + j) * N_KINDS + kind] = 1
+    return grid, window
+
+
+def reference_ompn_features(state: np.ndarray) -> np.ndarray:
+    """OMPN features of one compact state, entry by entry as the observation module documents them."""
+    grid, window = reference_window(state, 5)
+    feats = np.zeros(OMPN_DIM, dtype=np.float32)
+    feats[:EGO_DIM] = window
     for r in range(GRID_SIZE):
         for c in range(GRID_SIZE):
             feats[EGO_DIM + ((r // 2) * 5 + c // 2) * N_KINDS + grid[r, c]] += 1
@@ -516,6 +537,32 @@ def test_ompn_features_match_the_entry_by_entry_reference_at_every_agent_cell():
     expected = np.stack([reference_ompn_features(state) for state in states])
     assert np.array_equal(ompn_features(torch.as_tensor(states)).numpy(), expected)
     assert np.array_equal(ompn_features(torch.as_tensor(states, dtype=torch.float32)).numpy(), expected)
+
+
+def reference_full_view_features(state: np.ndarray) -> np.ndarray:
+    """The exact egocentric view of one compact state, entry by entry as the observation module documents it."""
+    _, window = reference_window(state, 15)
+    feats = np.zeros(FULL_VIEW_DIM, dtype=np.float32)
+    feats[: window.size] = window
+    feats[window.size + 7 : window.size + N_KINDS] = state[INVENTORY]
+    feats[window.size + N_KINDS + state[FACING]] = 1
+    return feats
+
+
+def test_full_view_features_match_the_reference_and_hold_the_whole_map_from_every_agent_cell():
+    rng = np.random.default_rng(1)
+    states = rng.integers(0, OBS_HIGH + 1, size=(2 * INTERIOR_SIZE**2, OBS_DIM))
+    states[:, AGENT_ROW], states[:, AGENT_COL] = np.divmod(np.arange(len(states)) % INTERIOR_SIZE**2, INTERIOR_SIZE)
+    states[:, FACING] = np.arange(len(states)) % 4
+    expected = np.stack([reference_full_view_features(state) for state in states])
+    feats = full_view_features(torch.as_tensor(states)).numpy()
+    assert feats.shape == (len(states), FULL_VIEW_DIM) and np.array_equal(feats, expected)
+    # Every interior cell is in the window wherever the agent stands: per kind, the window's count
+    # of a kind other than the boundary is the map's.
+    window = feats[:, : 15 * 15 * N_KINDS].reshape(len(states), 15 * 15, N_KINDS).sum(1)
+    counts = np.stack([np.bincount(state[CELLS], minlength=N_KINDS) for state in states])
+    kinds = np.arange(N_KINDS) != BOUNDARY
+    assert np.array_equal(window[:, kinds], counts[:, kinds])
 
 
 def test_gym_registration():

@@ -457,6 +457,23 @@ def test_config_defaults_and_registration():
         OCNConfig(device="cpu", window_start="sometimes")
 
 
+def test_full_view_encoder_feeds_the_exact_map_and_keeps_craft_states_unnormalised():
+    from envs.craft import CraftEnv
+    from envs.craft.observation import FULL_VIEW_DIM, full_view_features
+
+    craft_state = {OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))}
+    policy = make_policy(obs_encoder="craft_full_view", n_actions=5, input_features=craft_state)
+    assert policy.encoder.out_dim == FULL_VIEW_DIM
+    assert policy.config.normalization_mapping["STATE"] is NormalizationMode.IDENTITY
+    states = torch.stack([torch.as_tensor(CraftEnv().reset(seed=seed)[0]) for seed in range(4)])
+    torch.testing.assert_close(policy.encoder(states.float()), full_view_features(states))
+    batch = make_batch(steps=1)
+    batch[OBS_STATE] = states[:, None].float()
+    loss, _ = policy(batch)
+    loss.backward()
+    assert torch.isfinite(loss) and policy.core.options.w_x.grad.shape[1] == FULL_VIEW_DIM
+
+
 def test_save_and_load_round_trip(tmp_path):
     policy = make_policy(window_start="any")
     with torch.no_grad():

@@ -167,6 +167,7 @@ def model_card(path: Path, repo_id: str, result: dict[str, Any] | None, train_co
     from huggingface_hub import ModelCardData
 
     from ocn_data.datacard import render_card
+    from policies.sequence import CRAFT_ENCODERS
     from tools.episode_parsing import load_ocn
 
     policy, _, _ = load_ocn(path)
@@ -177,7 +178,7 @@ def model_card(path: Path, repo_id: str, result: dict[str, Any] | None, train_co
         license="apache-2.0",
         library_name="lerobot",
         pipeline_tag="robotics",
-        tags=list(POLICY_TAGS) + (["craft"] if config.obs_encoder == "craft" else []),
+        tags=list(POLICY_TAGS) + (["craft"] if config.obs_encoder in CRAFT_ENCODERS else []),
         datasets=[dataset] if dataset else None,
         model_name=repo_id,
         eval_results=eval_results(result) if result else None,
@@ -221,7 +222,7 @@ def model_card(path: Path, repo_id: str, result: dict[str, Any] | None, train_co
             "repo_id": repo_id,
             "arch": arch,
             "tasks": config.tasks,
-            "craft": _craft_mode(config.tasks) if config.obs_encoder == "craft" else None,
+            "craft": _craft_mode(config.tasks) if config.obs_encoder in CRAFT_ENCODERS else None,
             "train_command": train_command,
             "train": train,
             "eval": evaluation,

@@ -18,6 +18,14 @@ describe the world (the border is constant, so only the interior is kept)::
                 cells, count of each kind per block, index (bi * 5 + bj) * 21 + kind
     [1050:1071] inventory counts over all 21 kinds (kinds 0..6 are always 0)
     [1071:1075] facing one-hot
+
+The OMPN features place objects outside the 5x5 window only to their 2x2 block, while the scripted
+expert plans on the exact map. ``full_view_features`` is the exact alternative, 4750 floats::
+
+    [0:4725]    egocentric 15x15 window centred on the agent, one-hot over the 21 kinds (the
+                whole interior is inside it from every agent cell; outside cells are boundary)
+    [4725:4746] inventory counts over all 21 kinds
+    [4746:4750] facing one-hot
 """
 
 from __future__ import annotations
@@ -70,12 +78,25 @@ N_ACTIVE = WINDOW * WINDOW + GRID_SIZE * GRID_SIZE + (N_KINDS - INVENTORY_FIRST_
 N_CELL_ENTRIES = WINDOW * WINDOW + GRID_SIZE * GRID_SIZE
 FACING_FEATURE = EGO_DIM + MAP_DIM + N_KINDS
 
+FULL_WINDOW = 2 * INTERIOR_SIZE - 1
+FULL_EGO_DIM = FULL_WINDOW * FULL_WINDOW * N_KINDS
+FULL_VIEW_DIM = FULL_EGO_DIM + N_KINDS + 4
+
 
 def _interior_cell(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Index of interior cells (rows, cols) in the compact state, or N_CELLS (where
     `ompn_active_entries` puts the boundary kind) for cells outside the interior."""
     inside = (rows >= 0) & (rows < INTERIOR_SIZE) & (cols >= 0) & (cols < INTERIOR_SIZE)
     return np.where(inside, rows * INTERIOR_SIZE + cols, N_CELLS)
+
+
+def _window_cells(size: int) -> np.ndarray:
+    """[N_CELLS, size * size]: per agent cell, the compact-state cell each cell of the size x size
+    window centred on it reads (row-major), N_CELLS where it falls outside the interior."""
+    agent_row, agent_col = np.divmod(np.arange(N_CELLS), INTERIOR_SIZE)
+    window_row, window_col = np.divmod(np.arange(size * size), size)
+    radius = size // 2
+    return _interior_cell(agent_row[:, None] + window_row - radius, agent_col[:, None] + window_col - radius)
 
 
 @functools.cache
@@ -91,10 +112,7 @@ def _entry_tables(device: torch.device) -> tuple[torch.Tensor, torch.Tensor, tor
     """
     import torch
 
-    agent_row, agent_col = np.divmod(np.arange(N_CELLS), INTERIOR_SIZE)
-    window_row, window_col = np.divmod(np.arange(WINDOW * WINDOW), WINDOW)
-    radius = WINDOW // 2
-    window = _interior_cell(agent_row[:, None] + window_row - radius, agent_col[:, None] + window_col - radius)
+    window = _window_cells(WINDOW)
     grid_row, grid_col = np.divmod(np.arange(GRID_SIZE * GRID_SIZE), GRID_SIZE)
     grid = _interior_cell(grid_row - 1, grid_col - 1)
     sources = np.concatenate([window, np.broadcast_to(grid, (N_CELLS, grid.size))], axis=1)
@@ -136,3 +154,30 @@ def ompn_features(state: torch.Tensor) -> torch.Tensor:
     index, value = ompn_active_entries(state)
     dense = torch.zeros((*index.shape[:-1], OMPN_DIM), dtype=torch.float32, device=index.device)
     return dense.scatter_add_(-1, index, value)
+
+
+@functools.cache
+def _full_view_window(device: torch.device) -> torch.Tensor:
+    """`_window_cells(FULL_WINDOW)` on `device`, built once."""
+    import torch
+
+    return torch.as_tensor(_window_cells(FULL_WINDOW), dtype=torch.long, device=device)
+
+
+def full_view_features(state: torch.Tensor) -> torch.Tensor:
+    """Map compact states [..., 81] (any int dtype) to the exact egocentric view [..., 4750] float32:
+    the 15x15 window one-hot, the inventory counts and the facing (layout in the module docstring)."""
+    import torch
+
+    lead = state.shape[:-1]
+    s = state.reshape(-1, OBS_DIM).long()
+    b = s.shape[0]
+    kinds = torch.cat([s[:, CELLS], s.new_full((b, 1), BOUNDARY)], dim=1)
+    agent = s[:, AGENT_ROW] * INTERIOR_SIZE + s[:, AGENT_COL]
+    cells = kinds.gather(1, _full_view_window(s.device).index_select(0, agent))
+    window_offsets = torch.arange(FULL_WINDOW * FULL_WINDOW, device=s.device) * N_KINDS
+    features = torch.zeros((b, FULL_VIEW_DIM), dtype=torch.float32, device=s.device)
+    features.scatter_(1, window_offsets + cells, 1.0)
+    features[:, FULL_EGO_DIM + INVENTORY_FIRST_KIND:FULL_EGO_DIM + N_KINDS] = s[:, INVENTORY].float()
+    features.scatter_(1, FULL_EGO_DIM + N_KINDS + s[:, FACING, None], 1.0)
+    return features.reshape(*lead, FULL_VIEW_DIM)
