@@ -2,6 +2,7 @@
 the chosen runs and hands `lerobot-train` any train split, however long."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -74,14 +75,23 @@ def test_a_moved_dataset_is_still_reused_but_one_of_unknown_origin_is_not(tmp_pa
         check_recorded_as(tmp_path / "new", _recording(tmp_path / "new"))
 
 
-def test_a_cosine_imitation_run_gets_its_own_folder_and_policy_setting(tmp_path):
-    from tools.reproduce.imitation import VARIANTS, run_dir, schedule_overrides
+def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_and_policy_settings():
+    from tools.reproduce import imitation
 
-    constant, cosine = (run_dir(tmp_path, VARIANTS[0], 1, schedule) for schedule in ("constant", "cosine"))
-    assert constant == tmp_path / "imitation_s1" / "3options_T10" / "seed1"
-    assert cosine == tmp_path / "imitation_s1" / "3options_T10_cosine" / "seed1"
-    assert schedule_overrides("constant") == {}
-    assert schedule_overrides("cosine") == {"lr_schedule": "cosine"}
+    def overrides(*argv):
+        parser = imitation.argparse.ArgumentParser()
+        imitation.add_parser(parser.add_subparsers())
+        return imitation.study_overrides(parser.parse_args(["imitation-s1", *argv]))
+
+    assert overrides() == overrides("--lr-schedule", "constant", "--obs-encoder", "craft") == {}
+    assert overrides("--lr-schedule", "cosine") == {"lr_schedule": "cosine"}
+    both = overrides("--obs-encoder", "craft_full_view", "--lr-schedule", "cosine")
+    assert both == {"lr_schedule": "cosine", "obs_encoder": "craft_full_view"}
+    main = imitation.VARIANTS[0]
+    assert imitation.run_dir(Path("w"), main, 1) == Path("w/imitation_s1/3options_T10/seed1")
+    assert imitation.run_dir(Path("w"), main, 1, overrides("--lr-schedule", "cosine")) == Path(
+        "w/imitation_s1/3options_T10_cosine/seed1")
+    assert imitation.run_dir(Path("w"), main, 2, both) == Path("w/imitation_s1/3options_T10_cosine_craft_full_view/seed2")
 
 
 def test_imitation_runs_can_be_limited_to_chosen_variants():

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from policies.sequence import LR_SCHEDULES, SequenceConfig
+from policies.sequence import CRAFT_ENCODERS, LR_SCHEDULES, SequenceConfig
 from tools.bench import RESULTS
 
 from tools.reproduce.report import checks_table, provenance, write_result_files
@@ -24,9 +24,10 @@ from tools.reproduce.runs import TrainSettings, evaluate_run, record_dataset, tr
 
 S1_TASKS = "AC,CD,DA"
 S1_REPO_ID = "local/craft_s1"
-# The policy's own default schedule (the paper's constant lr): runs under it keep the command and
-# folder they had before the schedule could be chosen.
-DEFAULT_LR_SCHEDULE = SequenceConfig.lr_schedule
+# Study-wide `--policy.*` settings chosen on this command line, with the policy's own defaults (the
+# paper's constant lr and OMPN's observation). A run spells one out, and gets its own folder, only
+# when it differs from the default, so runs made before the option existed keep their command.
+STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": SequenceConfig.obs_encoder}
 METRICS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "diagonal_mean", "off_diagonal_max", "mean_success_rate")
 
 
@@ -64,22 +65,22 @@ def s1_data(args: argparse.Namespace) -> Path:
     return data
 
 
-def run_dir(workdir: Path, variant: Variant, seed: int, lr_schedule: str = DEFAULT_LR_SCHEDULE) -> Path:
-    """A run's folder; runs under another schedule get their own, so both kinds live in one workdir."""
-    schedule = "" if lr_schedule == DEFAULT_LR_SCHEDULE else f"_{lr_schedule}"
-    return workdir / "imitation_s1" / f"{_slug(variant.name)}{schedule}" / f"seed{seed}"
+def study_overrides(args: argparse.Namespace) -> dict[str, str]:
+    """The study-wide `--policy.*` settings of this invocation that differ from the policy's defaults."""
+    return {key: getattr(args, key) for key, default in STUDY_DEFAULTS.items() if getattr(args, key) != default}
 
 
-def schedule_overrides(lr_schedule: str) -> dict[str, str]:
-    """`--policy.lr_schedule` for a run, spelled out only when it is not the default, so that runs
-    trained before the option existed keep their command and are reused."""
-    return {} if lr_schedule == DEFAULT_LR_SCHEDULE else {"lr_schedule": lr_schedule}
+def run_dir(workdir: Path, variant: Variant, seed: int, overrides: dict[str, str] | None = None) -> Path:
+    """A run's folder; runs under non-default study settings (`study_overrides`) get their own, named
+    after them (`3options_T10_cosine`), so that every kind lives in one workdir."""
+    suffix = "".join(f"_{value}" for value in (overrides or {}).values())
+    return workdir / "imitation_s1" / f"{_slug(variant.name)}{suffix}" / f"seed{seed}"
 
 
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:
     """Train (unless done before) and evaluate one seed of one variant; returns its record."""
-    folder = run_dir(args.workdir, variant, seed, args.lr_schedule)
-    overrides = {**variant.overrides, **schedule_overrides(args.lr_schedule)}
+    folder = run_dir(args.workdir, variant, seed, study_overrides(args))
+    overrides = {**variant.overrides, **study_overrides(args)}
     trained = train_policy(train_settings(args), data, S1_REPO_ID, folder, seed, overrides)
     return evaluate_run(folder, trained, data, S1_REPO_ID, args.rollouts, {"variant": variant.name, "seed": seed})
 
@@ -158,7 +159,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
         f"{result['date']}. Training: `lerobot-train`, {result['settings']['steps']} steps of "
         f"{result['settings']['batch_size']} windows (episodes), {result['settings']['lr_schedule']} learning "
-        f"rate, controller learning-rate scale {result['settings']['controller_lr_scale']}; scores: `ocn-eval` "
+        f"rate, controller learning-rate scale {result['settings']['controller_lr_scale']}, observation encoder "
+        f"`{result['settings']['obs_encoder']}`; scores: `ocn-eval` "
         f"on the validation split "
         f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Runs finished: "
         f"{result['runs_finished']} of {result['runs_planned']}; wall time of this invocation "
@@ -233,7 +235,7 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
     }
     stem = write_result_files(args.results, "imitation_s1", result, markdown(result))
     plot(records, stem.with_suffix(".png"))
-    first = run_dir(args.workdir, VARIANTS[0], 1) / "eval.png"
+    first = run_dir(args.workdir, VARIANTS[0], 1, study_overrides(args)) / "eval.png"
     if first.exists():
         (args.results / "imitation_s1_option_table.png").write_bytes(first.read_bytes())
     return result
@@ -249,8 +251,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help=f"comma-separated variants to run, of {','.join(_slug(v.name) for v in VARIANTS)} "
                          "(default: all); the results files then cover those runs")
     add_training_arguments(s1)
-    s1.add_argument("--lr-schedule", choices=LR_SCHEDULES, default=DEFAULT_LR_SCHEDULE,
+    s1.add_argument("--lr-schedule", choices=LR_SCHEDULES, default=STUDY_DEFAULTS["lr_schedule"],
                     help="lr over each run: the paper's constant, or cosine annealing to 0 (OCNConfig.lr_schedule)")
+    s1.add_argument("--obs-encoder", choices=CRAFT_ENCODERS, default=STUDY_DEFAULTS["obs_encoder"],
+                    help="observation of every run: OMPN's features (the paper's) or the exact map (README, "
+                         "observation encoders)")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
     s1.set_defaults(func=imitation_s1)
