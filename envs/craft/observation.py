@@ -99,6 +99,16 @@ def _window_cells(size: int) -> np.ndarray:
     return _interior_cell(agent_row[:, None] + window_row - radius, agent_col[:, None] + window_col - radius)
 
 
+def _window_kinds(s: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
+    """The kinds [B, W] of the cells that compact states s [B, 81] read through per-agent-cell
+    tables windows [N_CELLS, W] (index N_CELLS, outside the interior, reads the boundary kind)."""
+    import torch
+
+    kinds = torch.cat([s[:, CELLS], s.new_full((s.shape[0], 1), BOUNDARY)], dim=1)
+    agent = s[:, AGENT_ROW] * INTERIOR_SIZE + s[:, AGENT_COL]
+    return kinds.gather(1, windows.index_select(0, agent))
+
+
 @functools.cache
 def _entry_tables(device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """What every state's entries share, on `device`, built once: they depend on no state or on the
@@ -136,10 +146,7 @@ def ompn_active_entries(state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
     s = state.reshape(-1, OBS_DIM).long()
     b = s.shape[0]
     sources, offsets, inventory = _entry_tables(s.device)
-    # The interior's kinds, then the boundary kind that every cell outside the interior reads.
-    kinds = torch.cat([s[:, CELLS], s.new_full((b, 1), BOUNDARY)], dim=1)
-    agent = s[:, AGENT_ROW] * INTERIOR_SIZE + s[:, AGENT_COL]
-    cells = offsets + kinds.gather(1, sources.index_select(0, agent))
+    cells = offsets + _window_kinds(s, sources)
     facing = FACING_FEATURE + s[:, FACING, None]
     index = torch.cat([cells, inventory.expand(b, -1), facing], dim=1)
     value = torch.ones(index.shape, dtype=torch.float32, device=s.device)
@@ -172,9 +179,7 @@ def full_view_features(state: torch.Tensor) -> torch.Tensor:
     lead = state.shape[:-1]
     s = state.reshape(-1, OBS_DIM).long()
     b = s.shape[0]
-    kinds = torch.cat([s[:, CELLS], s.new_full((b, 1), BOUNDARY)], dim=1)
-    agent = s[:, AGENT_ROW] * INTERIOR_SIZE + s[:, AGENT_COL]
-    cells = kinds.gather(1, _full_view_window(s.device).index_select(0, agent))
+    cells = _window_kinds(s, _full_view_window(s.device))
     window_offsets = torch.arange(FULL_WINDOW * FULL_WINDOW, device=s.device) * N_KINDS
     features = torch.zeros((b, FULL_VIEW_DIM), dtype=torch.float32, device=s.device)
     features.scatter_(1, window_offsets + cells, 1.0)

@@ -42,7 +42,7 @@ from envs.dial.task import DEFAULT_DIGITS, parse_pin_list, pin_code
 from tools.bench import RESULTS
 from tools.reproduce import finetune, imitation
 from tools.reproduce.finetune import Method, Setting
-from tools.reproduce.report import checks_table, provenance, write_result_files
+from tools.reproduce.report import checks_table, machine_words, provenance, write_result_files
 from tools.reproduce.runs import TrainedRun, TrainSettings, evaluate_run, record_dataset, train_policy
 
 DATA = "dial2"
@@ -119,7 +119,7 @@ def markdown(result: dict[str, Any]) -> str:
     lines = [
         f"# Dial: skills from 2-digit PINs, finetuned on {', '.join(labels)}",
         "",
-        f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
+        f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Demonstrations: the 12 two-digit PINs over 1, 2, 4, 8, "
         f"{settings['episodes_per_task']} each; clones: `lerobot-train`, {settings['steps']} steps of "
         f"{settings['batch_size']} windows of {settings['window_size']} frames, {N_OPTIONS} options, T = 10; "

@@ -32,7 +32,7 @@ from tools import console_script
 from tools.bench import RESULTS
 from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE
 from tools.reproduce import imitation
-from tools.reproduce.report import checks_table, over_seeds, provenance, write_result_files
+from tools.reproduce.report import checks_table, machine_words, over_seeds, provenance, write_result_files
 from tools.reproduce.runs import TrainedRun, TrainSettings, record_dataset, train_policy
 
 GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
@@ -272,7 +272,7 @@ def markdown(result: dict[str, Any]) -> str:
     lines = [
         f"# Finetuning on Craft {setting.name.upper()}: {setting.tasks}",
         "",
-        f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
+        f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
         f"{setting.n_options} options per cloned model{skills_note}, cloned by "
         f"`lerobot-train`; PPO through `ocn-finetune`, "

@@ -19,7 +19,7 @@ import numpy as np
 from policies.sequence import CRAFT_ENCODERS, LR_SCHEDULES, SequenceConfig
 from tools.bench import RESULTS
 
-from tools.reproduce.report import checks_table, provenance, write_result_files
+from tools.reproduce.report import checks_table, machine_words, provenance, write_result_files
 from tools.reproduce.runs import TrainSettings, evaluate_run, record_dataset, train_policy
 
 S1_TASKS = "AC,CD,DA"
@@ -79,9 +79,9 @@ def run_dir(workdir: Path, variant: Variant, seed: int, overrides: dict[str, str
 
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:
     """Train (unless done before) and evaluate one seed of one variant; returns its record."""
-    folder = run_dir(args.workdir, variant, seed, study_overrides(args))
-    overrides = {**variant.overrides, **study_overrides(args)}
-    trained = train_policy(train_settings(args), data, S1_REPO_ID, folder, seed, overrides)
+    study = study_overrides(args)
+    folder = run_dir(args.workdir, variant, seed, study)
+    trained = train_policy(train_settings(args), data, S1_REPO_ID, folder, seed, {**variant.overrides, **study})
     return evaluate_run(folder, trained, data, S1_REPO_ID, args.rollouts, {"variant": variant.name, "seed": seed})
 
 
@@ -156,7 +156,7 @@ def markdown(result: dict[str, Any]) -> str:
     lines = [
         "# OCN imitation on Craft S1 ({AC, CD, DA})",
         "",
-        f"Written by `{result['command']}` on {result['machine']['cpu']} ({result['machine']['cores']} cores), "
+        f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Training: `lerobot-train`, {result['settings']['steps']} steps of "
         f"{result['settings']['batch_size']} windows (episodes), {result['settings']['lr_schedule']} learning "
         f"rate, controller learning-rate scale {result['settings']['controller_lr_scale']}, observation encoder "

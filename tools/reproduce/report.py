@@ -15,6 +15,11 @@ import numpy as np
 from tools.bench import machine
 
 
+def machine_words(record: dict[str, Any]) -> str:
+    """A `tools.bench.machine()` record in a few words: "AMD EPYC (2 cores)"."""
+    return f"{record['cpu']} ({record['cores']} cores)"
+
+
 def provenance(args: argparse.Namespace) -> dict[str, Any]:
     """The command line, date, machine and every setting of this invocation, so that a results file
     says how to make it again and what it was measured on."""

@@ -17,6 +17,7 @@ import numpy as np
 
 from tools import console_script
 from tools.bench import machine
+from tools.reproduce.report import machine_words
 
 SAVE_EVERY = 1000  # lerobot-train checkpoints this often by default, so a stopped run resumes from its last one
 # Linux caps one command-line argument at 128 KiB; a train split listed in more goes through a file.
@@ -133,8 +134,7 @@ def train_policy(
 
 def machine_name() -> str:
     """This machine in a few words, for records that gather runs made on several machines."""
-    here = machine()
-    return f"{here['cpu']} ({here['cores']} cores)"
+    return machine_words(machine())
 
 
 def trained_on(run_dir: Path) -> list[str]:
