@@ -140,3 +140,16 @@ def test_a_run_lists_the_machines_that_trained_it(tmp_path):
                                                                                   "machine": machine_name()}]
     (tmp_path / "train_wall_s.json").write_text(json.dumps({"invocations": invocations, "total": 7.0}))
     assert trained_on(tmp_path) == ["not recorded", "X (2 cores)", machine_name()]
+
+
+def test_a_run_whose_first_steps_were_not_timed_says_from_which_step_its_wall_time_counts(tmp_path):
+    from tools.reproduce.report import train_time_words
+    from tools.reproduce.runs import timed_from_step
+
+    assert timed_from_step(tmp_path) == 0
+    invocations = [{"from_step": 2000, "wall_s": 3187.7}, {"from_step": 4000, "wall_s": 10.0}]
+    (tmp_path / "train_wall_s.json").write_text(json.dumps({"invocations": invocations, "total": 3197.7}))
+    assert timed_from_step(tmp_path) == 2000
+    assert train_time_words({"train_wall_s": 3197.7, "train_timed_from_step": 2000}) == "3198 (steps 2000+)"
+    assert train_time_words({"train_wall_s": 812.4, "train_timed_from_step": 0}) == "812"
+    assert train_time_words({"train_wall_s": None}) == "not timed"

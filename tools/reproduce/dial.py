@@ -42,7 +42,7 @@ from envs.dial.task import DEFAULT_DIGITS, parse_pin_list, pin_code
 from tools.bench import RESULTS
 from tools.reproduce import finetune, imitation
 from tools.reproduce.finetune import Method, Setting
-from tools.reproduce.report import checks_table, machine_words, provenance, write_result_files
+from tools.reproduce.report import checks_table, machine_words, provenance, train_time_words, write_result_files
 from tools.reproduce.runs import TrainedRun, TrainSettings, evaluate_run, record_dataset, train_policy
 
 DATA = "dial2"
@@ -142,7 +142,7 @@ def markdown(result: dict[str, Any]) -> str:
         scores = record["scores"]
         per_pin = ", ".join(f"{pin} {rate:.2f}" for pin, rate in scores["success_rate"].items())
         cells = " | ".join(f"{scores[key]:.3f}" for key in SCORES)
-        lines.append(f"| {record['seed']} | {cells} | {per_pin} | {record['train_wall_s']} |")
+        lines.append(f"| {record['seed']} | {cells} | {per_pin} | {train_time_words(record)} |")
     lines += [
         "",
         "## Finetuning at the budget",

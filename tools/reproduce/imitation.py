@@ -19,7 +19,7 @@ import numpy as np
 from policies.sequence import CRAFT_ENCODERS, LR_SCHEDULES, SequenceConfig
 from tools.bench import RESULTS
 
-from tools.reproduce.report import checks_table, machine_words, provenance, write_result_files
+from tools.reproduce.report import checks_table, machine_words, provenance, train_time_words, write_result_files
 from tools.reproduce.runs import TrainSettings, evaluate_run, record_dataset, train_policy
 
 S1_TASKS = "AC,CD,DA"
@@ -183,7 +183,7 @@ def markdown(result: dict[str, Any]) -> str:
         success = ", ".join(f"{v:.2f}" for v in s["success_rate"].values())
         lines.append(
             f"| {r['variant']} | {r['seed']} | {s['f1_tol0']:.3f} | {s['f1_tol1']:.3f} | {s['align_acc']:.3f} | "
-            f"{s['nmi']:.3f} | {', '.join(f'{d:.2f}' for d in s['diagonal'])} | {success} | {r['train_wall_s']} | "
+            f"{s['nmi']:.3f} | {', '.join(f'{d:.2f}' for d in s['diagonal'])} | {success} | {train_time_words(r)} | "
             f"{'; '.join(r.get('trained_on') or ['not recorded'])} |"
         )
     lines += ["", "Plots: `imitation_s1.png` (every metric, seeds as dots), `imitation_s1_option_table.png` "

@@ -45,8 +45,8 @@ from ocn_data.episodes_table import EpisodeArrays, load_episodes, split_episodes
 from tools.bench import RESULTS
 from tools.reproduce import finetune, imitation
 from tools.reproduce.finetune import Method
-from tools.reproduce.report import checks_table, over_seeds, provenance, write_result_files
-from tools.reproduce.runs import TrainSettings, train_policy
+from tools.reproduce.report import checks_table, over_seeds, provenance, train_time_words, write_result_files
+from tools.reproduce.runs import TrainSettings, train_policy, training_record
 
 METRICS = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "task alignment", "nmi": "NMI"}
 _FINETUNED = {method.key: method for method in finetune.METHODS}
@@ -169,8 +169,7 @@ def run_one(args: argparse.Namespace, data: Path, episodes: EpisodeArrays, metho
     trained = train_policy(settings, data, imitation.S1_REPO_ID, folder, seed, overrides)
     scored = score_run(folder, scored_steps(settings.steps, settings.save_every), episodes, args.threads)
     return {
-        "method": method.name, "seed": seed, "train_command": trained.command, "train_wall_s": trained.train_wall_s,
-        "trained_on": trained.trained_on,
+        "method": method.name, "seed": seed, "train_command": trained.command, **training_record(trained),
         "score_wall_s": round(sum(row["wall_s"] for row in scored), 1),
         "hyperparameters": hyperparameters(method, trained.checkpoint, settings),
         "checkpoints": scored,
@@ -320,7 +319,7 @@ def markdown(result: dict[str, Any]) -> str:
     for run in result["runs"]:
         last = run["checkpoints"][-1]
         cells = " | ".join("n/a" if last[m] is None else f"{last[m]:.3f}" for m in METRICS)
-        lines.append(f"| {run['method']} | {run['seed']} | {len(run['checkpoints'])} | {run['train_wall_s']} | "
+        lines.append(f"| {run['method']} | {run['seed']} | {len(run['checkpoints'])} | {train_time_words(run)} | "
                      f"{run['score_wall_s']} | {cells} |")
     lines += ["", "Curves: `parsing_s1.png`; every checkpoint's scores: `parsing_s1.json`.", ""]
     return "\n".join(lines)

@@ -20,6 +20,15 @@ def machine_words(record: dict[str, Any]) -> str:
     return f"{record['cpu']} ({record['cores']} cores)"
 
 
+def train_time_words(record: dict[str, Any]) -> str:
+    """A run's training wall seconds for a table cell, saying from which step they count when the
+    run's first steps were trained before invocations were timed."""
+    wall, start = record["train_wall_s"], record.get("train_timed_from_step", 0)
+    if wall is None:
+        return "not timed"
+    return f"{wall:.0f}" if start == 0 else f"{wall:.0f} (steps {start}+)"
+
+
 def provenance(args: argparse.Namespace) -> dict[str, Any]:
     """The command line, date, machine and every setting of this invocation, so that a results file
     says how to make it again and what it was measured on."""

@@ -82,12 +82,15 @@ class TrainSettings:
 @dataclass
 class TrainedRun:
     """A finished training run: its checkpoint, the command shown in records, its wall time (None when
-    an earlier reproduction trained all of it and kept no timing) and the machines that trained it."""
+    an earlier reproduction trained all of it and kept no timing), the step its timing starts from (not
+    0 when it resumed a run whose first steps were trained before invocations were timed) and the
+    machines that trained it."""
 
     checkpoint: Path
     command: str
     train_wall_s: float | None
     trained_on: list[str] = field(default_factory=list)
+    timed_from_step: int = 0
 
 
 def train_command(
@@ -129,7 +132,8 @@ def train_policy(
     shown = " ".join(command[:4] + ["--dataset.episodes=[<train split>]"] + command[5:])
     check_reusable(run_dir, shown)
     wall = train(settings, command, shown, run_dir)
-    return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall, trained_on(run_dir))
+    return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall, trained_on(run_dir),
+                      timed_from_step(run_dir))
 
 
 def machine_name() -> str:
@@ -137,12 +141,29 @@ def machine_name() -> str:
     return machine_words(machine())
 
 
+def _invocations(run_dir: Path) -> list[dict[str, Any]]:
+    """The timed training invocations of a run, in order (none for a run trained before timing)."""
+    times_path = run_dir / "train_wall_s.json"
+    return json.loads(times_path.read_text())["invocations"] if times_path.exists() else []
+
+
 def trained_on(run_dir: Path) -> list[str]:
     """The machines of a run's training invocations, in order, each once ("not recorded" for those
     made before invocations recorded their machine)."""
-    times_path = run_dir / "train_wall_s.json"
-    invocations = json.loads(times_path.read_text())["invocations"] if times_path.exists() else []
-    return list(dict.fromkeys(invocation.get("machine", "not recorded") for invocation in invocations))
+    return list(dict.fromkeys(invocation.get("machine", "not recorded") for invocation in _invocations(run_dir)))
+
+
+def timed_from_step(run_dir: Path) -> int:
+    """The training step the run's recorded wall time starts from: 0 when every step was timed."""
+    invocations = _invocations(run_dir)
+    return invocations[0]["from_step"] if invocations else 0
+
+
+def training_record(trained: TrainedRun) -> dict[str, Any]:
+    """How a run was trained, for its record: read afresh from its timing file whenever the record is
+    used, so that a record scored before a field existed still reports it."""
+    return {"train_wall_s": trained.train_wall_s, "train_timed_from_step": trained.timed_from_step,
+            "trained_on": trained.trained_on}
 
 
 def evaluate_run(folder: Path, trained: TrainedRun, data: Path, repo_id: str, rollouts: int,
@@ -154,7 +175,7 @@ def evaluate_run(folder: Path, trained: TrainedRun, data: Path, repo_id: str, ro
 
     record_path, eval_json = folder / "record.json", folder / "eval.json"
     if record_path.exists():
-        return json.loads(record_path.read_text())
+        return {**json.loads(record_path.read_text()), **training_record(trained)}
     started = time.perf_counter()
     subprocess.run(
         [console_script("ocn-eval"), "--policy", str(trained.checkpoint), "--root", str(data), "--repo-id", repo_id,
@@ -165,8 +186,7 @@ def evaluate_run(folder: Path, trained: TrainedRun, data: Path, repo_id: str, ro
     scores.update(option_table_summary(np.array(scores["option_subtask_success"]["table"])))
     record = {
         **labels,
-        "train_wall_s": trained.train_wall_s,
-        "trained_on": trained.trained_on,
+        **training_record(trained),
         "evaluated_on": machine_name(),
         "eval_wall_s": round(time.perf_counter() - started, 1),
         "train_command": trained.command,
