@@ -24,17 +24,29 @@ def test_reuse_ignores_moved_paths(tmp_path):
     check_reusable(tmp_path / "run", COMMAND.format(root="/new/place", steps=5000))
 
 
-def test_reuse_refuses_other_settings(tmp_path):
-    _write_record(tmp_path / "run", COMMAND.format(root="/data", steps=250))
+def test_reuse_refuses_other_settings_and_fewer_steps(tmp_path):
+    _write_record(tmp_path / "run", COMMAND.format(root="/data", steps=5000) + " --seed=1")
     with pytest.raises(SystemExit, match="trained with other settings"):
-        check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=5000))
+        check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=5000) + " --seed=2")
+    with pytest.raises(SystemExit, match="trained with other settings"):
+        check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=250) + " --seed=1")
+    with pytest.raises(SystemExit, match="trained with other settings"):
+        check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=9000) + " --seed=2")
+
+
+def test_a_run_is_extended_to_more_steps_only_under_a_constant_learning_rate(tmp_path):
+    _write_record(tmp_path / "run", COMMAND.format(root="/data", steps=5000))
+    check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=20000))
+    _write_record(tmp_path / "cosine", COMMAND.format(root="/data", steps=5000) + " --policy.lr_schedule=cosine")
+    with pytest.raises(SystemExit, match="only under a constant learning rate"):
+        check_reusable(tmp_path / "cosine", COMMAND.format(root="/data", steps=20000) + " --policy.lr_schedule=cosine")
 
 
 def test_unfinished_run_is_checked_by_its_command_file(tmp_path):
     (tmp_path / "run").mkdir()
-    (tmp_path / "run" / "train_command.txt").write_text(COMMAND.format(root="/data", steps=250) + "\n")
-    with pytest.raises(SystemExit, match="--steps=250"):
-        check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=5000))
+    (tmp_path / "run" / "train_command.txt").write_text(COMMAND.format(root="/data", steps=250) + " --seed=1\n")
+    with pytest.raises(SystemExit, match="--seed=1"):
+        check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=250) + " --seed=2")
     check_reusable(tmp_path / "empty", COMMAND.format(root="/data", steps=5000))
 
 

@@ -50,6 +50,18 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
     changed = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--frames", "3000")
     assert changed.returncode != 0 and "another command" in changed.stderr
 
+    # More clone steps extend the clone from its last checkpoint, and its finetuning is made again.
+    longer = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--steps", "4")
+    assert longer.returncode == 0, longer.stderr[-2000:]
+    run_dir = tmp_path / "work" / "imitation_s1" / "3options_T10" / "seed1"
+    assert "from step 2" in longer.stdout and "its clones were trained on since" in longer.stdout
+    step = run_dir / "train" / "checkpoints" / "last" / "training_state" / "training_step.json"
+    assert json.loads(step.read_text())["step"] == 4
+    timing = json.loads((run_dir / "train_wall_s.json").read_text())
+    assert [invocation["from_step"] for invocation in timing["invocations"]] == [0, 2]
+    first = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())["runs"][0]
+    assert "--steps=4" in first["clone_commands"][0]
+
 
 def test_unknown_method_is_refused(tmp_path):
     done = _reproduce(tmp_path, "--methods", "ocn,options")

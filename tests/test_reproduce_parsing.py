@@ -76,7 +76,7 @@ def test_parsing_s1_scores_every_checkpoint_and_writes_results_then_reuses(tmp_p
     assert f"training {work}" not in again and "resuming" not in again and cache.stat().st_mtime_ns == scored_at
 
     with pytest.raises(SystemExit, match="trained with other settings"):
-        _reproduce(tmp_path, "--steps", "3")
+        _reproduce(tmp_path, "--steps", "1")
 
 
 def test_a_run_without_the_wanted_checkpoints_is_refused(tmp_path):

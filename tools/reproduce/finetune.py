@@ -33,7 +33,7 @@ from tools.bench import RESULTS
 from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE
 from tools.reproduce import imitation
 from tools.reproduce.report import checks_table, machine_words, over_seeds, provenance, write_result_files
-from tools.reproduce.runs import TrainedRun, TrainSettings, record_dataset, train_policy
+from tools.reproduce.runs import TrainedRun, TrainSettings, record_dataset, same_training, train_policy
 
 GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
 FINAL_ROWS = 3  # PPO iterations averaged for the value "at the budget" (one iteration is noisy)
@@ -127,7 +127,9 @@ def finetune_command(args: argparse.Namespace, setting: Setting, method: Method,
 
 def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, reward: str, seed: int,
                  clones: list[TrainedRun]) -> dict[str, Any]:
-    """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve."""
+    """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve.
+    A finished run is made again when a clone it used was trained on since (`clones.json` keeps the
+    clones' training commands; runs from before it existed are reused as they are)."""
     out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}" / f"seed{seed}"
     command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
     shown = " ".join(Path(word).name if word.startswith("/") else word for word in command)
@@ -135,10 +137,17 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
     if command_path.exists() and command_path.read_text().strip() != shown:
         raise SystemExit(f"{out} holds a run made by another command:\n  {command_path.read_text().strip()}\n"
                          f"while this reproduction would run:\n  {shown}\nMove it away or pass another --workdir.")
+    clones_path = out / "clones.json"
+    if summary_path.exists() and clones_path.exists() and not all(
+        same_training(before, run.command) for before, run in zip(json.loads(clones_path.read_text()), clones)
+    ):
+        print(f"finetuning {out} again: its clones were trained on since", flush=True)
+        summary_path.unlink()
     if not summary_path.exists():
         shutil.rmtree(out / "run", ignore_errors=True)
         out.mkdir(parents=True, exist_ok=True)
         command_path.write_text(shown + "\n")
+        clones_path.write_text(json.dumps([run.command for run in clones]) + "\n")
         print(f"finetuning {out}", flush=True)
         with open(out / "finetune.log", "w") as log:
             subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT)
@@ -146,6 +155,7 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
         rows = [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)]
     return {
         "method": method.name, "reward": reward, "seed": seed, "command": shown,
+        "clone_commands": [run.command for run in clones],
         "clone_wall_s": [run.train_wall_s for run in clones],
         "clones_trained_on": [run.trained_on for run in clones],
         "summary": json.loads(summary_path.read_text()),

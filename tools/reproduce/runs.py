@@ -175,7 +175,10 @@ def evaluate_run(folder: Path, trained: TrainedRun, data: Path, repo_id: str, ro
 
     record_path, eval_json = folder / "record.json", folder / "eval.json"
     if record_path.exists():
-        return {**json.loads(record_path.read_text()), **training_record(trained)}
+        record = json.loads(record_path.read_text())
+        if same_training(record["train_command"], trained.command):
+            return {**record, **training_record(trained)}
+        print(f"rescoring {folder}: its run was trained on since it was scored", flush=True)
     started = time.perf_counter()
     subprocess.run(
         [console_script("ocn-eval"), "--policy", str(trained.checkpoint), "--root", str(data), "--repo-id", repo_id,
@@ -218,7 +221,9 @@ def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path
         print(f"training {run_dir}", flush=True)
     else:
         config = train_dir / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
-        command = [command[0], f"--config_path={config}", "--resume=true"]
+        # The run's own settings, with this command's steps and save interval (a run extended to more steps).
+        schedule = [word for word in command if word.startswith(("--steps=", "--save_freq="))]
+        command = [command[0], f"--config_path={config}", "--resume=true", *schedule]
         print(f"resuming {run_dir} from step {done}", flush=True)
     times = json.loads(times_path.read_text()) if times_path.exists() else {"invocations": [], "total": 0.0}
     started = time.perf_counter()
@@ -234,23 +239,42 @@ def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path
 
 
 def check_reusable(run_dir: Path, command: str) -> None:
-    """Refuse to reuse a run that was trained by another command (other steps, seed, overrides...)."""
+    """Refuse to reuse a run that was trained by another command (other seed, overrides...). Other
+    steps are refused too, except more steps under a constant learning rate: training on from the
+    last checkpoint then is the longer run, so the run is extended rather than started over."""
     record_path, command_path = run_dir / "record.json", run_dir / "train_command.txt"
-    if record_path.exists():
-        before = json.loads(record_path.read_text())["train_command"]
-    elif command_path.exists():
+    if command_path.exists():
         before = command_path.read_text().strip()
+    elif record_path.exists():
+        before = json.loads(record_path.read_text())["train_command"]
     else:
         return
-    if _settings(before) != _settings(command):
+    same = same_training(before, command)
+    extends = _settings(before, "--steps=") == _settings(command, "--steps=") and _steps(before) < _steps(command)
+    if not (same or extends and _argument(command, "--policy.lr_schedule=", "constant") == "constant"):
         raise SystemExit(
             f"{run_dir} holds a run trained with other settings:\n  {before}\nwhile this reproduction "
-            f"would run:\n  {command}\nMove that folder away or pass another --workdir."
+            f"would run:\n  {command}\nMove that folder away or pass another --workdir (a run is extended to "
+            "more steps only under a constant learning rate)."
         )
 
 
-def _settings(command: str) -> list[str]:
+def same_training(before: str, command: str) -> bool:
+    """Whether two training commands train the same model (paths and save intervals aside)."""
+    return _settings(before) == _settings(command)
+
+
+def _settings(command: str, *also_ignored: str) -> list[str]:
     """A training command's arguments in any order, without what does not change the trained model:
     its paths (program, data root, output dir), which may move, and how often it logs and saves."""
-    ignored = ("--dataset.root=", "--output_dir=", "--save_freq=", "--log_freq=")
+    ignored = ("--dataset.root=", "--output_dir=", "--save_freq=", "--log_freq=", *also_ignored)
     return sorted(word for word in command.split()[1:] if not word.startswith(ignored))
+
+
+def _argument(command: str, prefix: str, default: str) -> str:
+    """The value of a `--name=value` word of a command (the default when absent)."""
+    return next((word[len(prefix):] for word in command.split() if word.startswith(prefix)), default)
+
+
+def _steps(command: str) -> int:
+    return int(_argument(command, "--steps=", "0"))
