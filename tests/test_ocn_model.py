@@ -158,6 +158,34 @@ def test_done_steps_controller_and_restarts_options():
     torch.testing.assert_close(out.weights, torch.cat([torch.zeros(2, N_OPTIONS), new_p_c], -1))
 
 
+def test_options_without_memory_step_from_their_initial_state_in_both_branches():
+    policy = make_policy(option_memory=False)
+    force_termination(policy, -1e4)  # "not done": with memory the options would continue from prev.option_h
+    core, prev, x = policy.core, _previous_state(), torch.randn(2, STATE_DIM)
+    _, out = core.step(prev, core.project(x), torch.zeros(2, dtype=torch.bool))
+    fresh = core.options(x, core.option_init.unsqueeze(1).expand(-1, 2, -1))
+    torch.testing.assert_close(out.params[:N_OPTIONS], fresh.logits)
+    torch.testing.assert_close(out.params[N_OPTIONS:], fresh.logits)
+    with_memory = make_policy()
+    force_termination(with_memory, -1e4)
+    _, remembered = with_memory.core.step(prev, with_memory.core.project(x), torch.zeros(2, dtype=torch.bool))
+    assert not torch.allclose(remembered.params[:N_OPTIONS], fresh.logits)
+    hard, _ = core.hard_step(core.initial_hard_state(torch.zeros(2, dtype=torch.long)), core.project(x),
+                             torch.ones(2, dtype=torch.bool), greedy=True)
+    _, step = core.hard_step(hard, core.project(x), torch.zeros(2, dtype=torch.bool), greedy=True)
+    torch.testing.assert_close(step.params, fresh.logits[hard.option, torch.arange(2)])
+
+
+def test_options_without_memory_still_train_their_heads_initial_states_and_the_controller():
+    policy = make_policy(option_memory=False, temperature=1.0)
+    loss, _ = policy(make_batch(batch=6, steps=5))
+    loss.backward()
+    core = policy.core
+    assert (core.options.w_out.grad.flatten(1).abs().sum(1) > 0).all()
+    assert (core.option_init.grad.abs().sum(1) > 0).all()
+    assert all(param.grad.abs().sum() > 0 for param in core.controller.parameters())
+
+
 def test_soft_step_mixes_both_branches_by_eq_17():
     policy = make_policy()
     core, prev, x = policy.core, _previous_state(), torch.randn(2, STATE_DIM)

@@ -53,6 +53,12 @@ class OCNConfig(SequenceConfig):
     mlp_hidden_size: int = 128
     mlp_depth: int = 2
     temperature: float = 10.0
+    # Whether each option carries its hidden state h^o from step to step (eq. 1-3, the paper). False
+    # feeds every option step its learned initial state instead, so an option is a function of the
+    # current observation alone. It is for worlds where a recurrent option can read its target off
+    # its own past motion, and so never has to become one skill (Dial: a PID reach reveals its joint
+    # targets within a few steps, and the options stop splitting by digit); Craft keeps the default.
+    option_memory: bool = True
 
     # How `select_action` runs the hierarchy. "soft": the differentiable eq. 17 mixture that training
     # uses. "hard": the option-level semantics of the RL phase (appendix A.1): the controller samples

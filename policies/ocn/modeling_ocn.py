@@ -57,6 +57,7 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             n_params=self.head.n_params,
             temperature=config.temperature,
             skill_length=config.fixed_skill_length,
+            option_memory=config.option_memory,
             options=self._latent_options() if config.decoder_latents else None,
         )
         self.reset()

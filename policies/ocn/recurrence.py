@@ -20,7 +20,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from .cell import StackedCell
+from .cell import CellOutput, StackedCell
 from .heads import sample_index
 
 
@@ -89,7 +89,8 @@ class OCNCore(nn.Module):
     `skill_length` L fixes how long every option runs (see `schedule`): 1 for the MoE baseline, where
     every step is then a start, L for HIL; None (OCN) leaves termination to the options. `options`
     replaces the option cells by another pool with their interface (`n_modules`, `project`, `step`),
-    such as the frozen compILE decoders of `latent_options`.
+    such as the frozen compILE decoders of `latent_options`. Without `option_memory` an option's
+    every step starts from its learned initial state, so its continuing and restarted outputs agree.
     """
 
     def __init__(
@@ -103,6 +104,7 @@ class OCNCore(nn.Module):
         n_params: int,
         temperature: float,
         skill_length: int | None = None,
+        option_memory: bool = True,
         options: nn.Module | None = None,
     ) -> None:
         super().__init__()
@@ -113,6 +115,7 @@ class OCNCore(nn.Module):
         self.n_options = n_options
         self.temperature = temperature
         self.skill_length = skill_length
+        self.option_memory = option_memory
         self.controller = StackedCell(
             1, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_options, with_end=False
         )
@@ -174,7 +177,7 @@ class OCNCore(nn.Module):
         restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
         # One-step options (MoE, and the flat and compILE pools built on it) never continue: every
         # row decides at every step, so the continuing branch would be computed only to be discarded.
-        continued = restarted if self.skill_length == 1 else self.options.step(x.options, state.option_h)
+        continued = self._continued(x.options, state.option_h, restarted, self.skill_length == 1)
         end = self.termination(forced, continued.end[state.option, rows])
         fired = end > 0.5 if greedy else torch.bernoulli(end).bool()
         decided = forced | fired
@@ -193,6 +196,13 @@ class OCNCore(nn.Module):
         )
         return next_state, HardStepOutput(option_params[option, rows], decided, end)
 
+    def _continued(
+        self, x_options: Tensor, option_h: Tensor, restarted: CellOutput, never: bool = False
+    ) -> CellOutput:
+        """The options' "not done" step from their own states h^o, or the restarted step itself where
+        options do not carry a state (`option_memory` off) or `never` continue."""
+        return restarted if never or not self.option_memory else self.options.step(x_options, option_h)
+
     def project(self, x: Tensor) -> Projected:
         """Observation parts for x [..., B, obs_dim], computed once per window outside the time loop."""
         return Projected(self.controller.project(x), self.options.project(x))
@@ -201,8 +211,8 @@ class OCNCore(nn.Module):
         """One step from projected observations x ([1, B, .], [N, B, .]); `start` [B] marks t = 1, where
         e_t = 1 (as wherever `schedule` forces it)."""
         forced, steps = self.schedule(start, state.steps)
-        continued = self.options.step(x.options, state.option_h)
         restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
+        continued = self._continued(x.options, state.option_h, restarted)
         ctrl = self.controller.step(x.controller, state.controller_h.unsqueeze(0))
         new_p_c = torch.softmax(ctrl.logits[0] / self.temperature, dim=-1)
         option_end = continued.end.transpose(0, 1)
