@@ -251,7 +251,7 @@ def check_reusable(run_dir: Path, command: str) -> None:
         return
     same = same_training(before, command)
     extends = _settings(before, "--steps=") == _settings(command, "--steps=") and _steps(before) < _steps(command)
-    if not (same or extends and _argument(command, "--policy.lr_schedule=", "constant") == "constant"):
+    if not (same or (extends and _argument(command, "--policy.lr_schedule=", "constant") == "constant")):
         raise SystemExit(
             f"{run_dir} holds a run trained with other settings:\n  {before}\nwhile this reproduction "
             f"would run:\n  {command}\nMove that folder away or pass another --workdir (a run is extended to "
