@@ -186,6 +186,44 @@ def test_options_without_memory_still_train_their_heads_initial_states_and_the_c
     assert all(param.grad.abs().sum() > 0 for param in core.controller.parameters())
 
 
+def test_forced_restarts_take_the_done_branch_in_some_rows_in_training_and_in_none_in_eval():
+    policy = make_policy(forced_restart_rate=0.5)
+    force_termination(policy, -1e4)  # the options never end by themselves: e_t is 0 unless forced
+    core, prev, x = policy.core, _previous_state(batch=400), torch.randn(400, STATE_DIM)
+    no_start = torch.zeros(400, dtype=torch.bool)
+    torch.manual_seed(5)
+    state, out = core.step(prev, core.project(x), no_start)
+    restarted_rows = out.end == 1.0
+    assert ((out.end == 0.0) | restarted_rows).all()
+    assert 0.4 < restarted_rows.float().mean() < 0.6
+    fresh = core.options(x, core.option_init.unsqueeze(1).expand(-1, 400, -1))
+    torch.testing.assert_close(state.option_h[:, restarted_rows], fresh.hidden[:, restarted_rows])
+    continued = core.options(x, prev.option_h)
+    torch.testing.assert_close(state.option_h[:, ~restarted_rows], continued.hidden[:, ~restarted_rows])
+    policy.eval()
+    _, out = core.step(prev, core.project(x), no_start)
+    assert not out.end.any()
+
+
+def test_forced_restart_rate_is_a_probability_for_ocn_only():
+    with pytest.raises(ValueError, match=r"forced_restart_rate must be in \[0, 1\), got 1.0"):
+        make_policy(forced_restart_rate=1.0)
+    with pytest.raises(ValueError, match="forced_restart_rate is for hierarchy='ocn'"):
+        make_policy(forced_restart_rate=0.1, hierarchy="hil")
+
+
+def test_initial_state_std_draws_distinct_task_states_that_send_tasks_to_different_options():
+    zero = make_policy().core
+    assert not zero.controller_init.any() and not zero.option_init.any()
+    core = make_policy(initial_state_std=0.5, n_options=4).core
+    assert 0.3 < core.controller_init.std().item() < 0.7 and 0.3 < core.option_init.std().item() < 0.7
+    x = torch.randn(1, STATE_DIM).expand(2, -1)
+    logits, _ = core.decide(core.project(x).controller, core.controller_init)
+    assert not torch.allclose(logits[0], logits[1])
+    with pytest.raises(ValueError, match="initial_state_std must be >= 0, got -0.1"):
+        make_policy(initial_state_std=-0.1)
+
+
 def test_soft_step_mixes_both_branches_by_eq_17():
     policy = make_policy()
     core, prev, x = policy.core, _previous_state(), torch.randn(2, STATE_DIM)

@@ -226,6 +226,22 @@ def segment_episodes(
     return parser_of(policy).segment(policy, preprocessor, episodes, batch_size)
 
 
+def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) -> dict[str, Any]:
+    """How a parse cuts the episodes, which the scores alone hide: predicted and true segments per
+    episode, and, for labelled parses, each label's share of the frames ([share of label 0, 1, ...,
+    up to the highest label used]), where an unused option shows as a share of 0 (or is past the
+    list's end) and a parse that never switches as one segment."""
+    true_segments = [len(boundaries_from_labels(episodes.subtask_index[i, :n])) for i, n in enumerate(episodes.lengths)]
+    stats: dict[str, Any] = {
+        "segments_per_episode": float(np.mean([len(parse.boundaries) for parse in parses])),
+        "true_segments_per_episode": float(np.mean(true_segments)),
+    }
+    if all(parse.labels is not None for parse in parses):
+        labels = np.concatenate([parse.labels for parse in parses]).astype(np.int64)
+        stats["label_share"] = (np.bincount(labels) / labels.size).round(4).tolist()
+    return stats
+
+
 def score_segmentations(episodes: EpisodeArrays, parses: Sequence[Segmentation]) -> dict[str, float | None]:
     """The shared parsing metrics of one Segmentation per episode against the episodes' ground truth:
     f1_tol0, f1_tol1 and align_acc from the boundaries, nmi from the labels (None without labels).

@@ -98,7 +98,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from ocn_data.episodes_table import load_episodes, read_info, split_episodes
     from ocn_data.mcap_log import check_new_log
     from tools import rollouts
-    from tools.episode_parsing import action_nll, load_policy, parser_of, score_segmentations
+    from tools.episode_parsing import action_nll, load_policy, parse_statistics, parser_of, score_segmentations
     from tools.worlds import world_of
 
     if args.mcap is not None:
@@ -173,6 +173,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     return {
         **scores,
         "action_nll": nll,
+        "parse_statistics": parse_statistics(episodes, parses),
         "option_subtask_success": option_table,
         **({"oracle_controller": oracle} if oracle is not None else {}),
         **({"not_applicable": not_applicable} if not_applicable else {}),

@@ -59,6 +59,15 @@ class OCNConfig(SequenceConfig):
     # its own past motion, and so never has to become one skill (Dial: a PID reach reveals its joint
     # targets within a few steps, and the options stop splitting by digit); Craft keeps the default.
     option_memory: bool = True
+    # Training-time probability, per step and window row, that e_t is forced to 1 (0: never, the
+    # paper): the controller chooses again and the options restart mid-subtask. A regulariser for the
+    # same Dial failure: options that must take over mid-reach from their initial states have to
+    # carry their digit themselves. Parsing and acting never force.
+    forced_restart_rate: float = 0.0
+    # Spread of the learned initial states (the controller's per task, the options') at construction:
+    # 0 starts them all at zero (every task then first picks the same options), > 0 draws them from
+    # N(0, std^2). The paper does not say.
+    initial_state_std: float = 0.0
 
     # How `select_action` runs the hierarchy. "soft": the differentiable eq. 17 mixture that training
     # uses. "hard": the option-level semantics of the RL phase (appendix A.1): the controller samples
@@ -93,6 +102,14 @@ class OCNConfig(SequenceConfig):
             raise ValueError(f"skill_length must be >= 1, got {self.skill_length}.")
         if self.controller_lr_scale <= 0:
             raise ValueError(f"controller_lr_scale must be > 0, got {self.controller_lr_scale}.")
+        if not 0.0 <= self.forced_restart_rate < 1.0:
+            raise ValueError(f"forced_restart_rate must be in [0, 1), got {self.forced_restart_rate}.")
+        if self.forced_restart_rate and self.hierarchy != "ocn":
+            raise ValueError(
+                f"forced_restart_rate is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}."
+            )
+        if self.initial_state_std < 0:
+            raise ValueError(f"initial_state_std must be >= 0, got {self.initial_state_std}.")
         if self.temperature <= 0:
             raise ValueError(f"temperature must be > 0, got {self.temperature}.")
         if self.decoder_latents < 0 or self.decoder_hidden_size < 1:

@@ -58,6 +58,8 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             temperature=config.temperature,
             skill_length=config.fixed_skill_length,
             option_memory=config.option_memory,
+            forced_restart_rate=config.forced_restart_rate,
+            initial_state_std=config.initial_state_std,
             options=self._latent_options() if config.decoder_latents else None,
         )
         self.reset()
