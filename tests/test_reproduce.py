@@ -165,3 +165,52 @@ def test_a_run_whose_first_steps_were_not_timed_says_from_which_step_its_wall_ti
     assert train_time_words({"train_wall_s": 3197.7, "train_timed_from_step": 2000}) == "3198 (steps 2000+)"
     assert train_time_words({"train_wall_s": 812.4, "train_timed_from_step": 0}) == "812"
     assert train_time_words({"train_wall_s": None}) == "not timed"
+
+
+def _imitation_args(results, *argv):
+    from tools.reproduce import imitation
+
+    parser = imitation.argparse.ArgumentParser()
+    imitation.add_parser(parser.add_subparsers())
+    args = parser.parse_args(["imitation-s1", "--results", str(results), *argv])
+    args.argv = ["imitation-s1", *argv]
+    return args
+
+
+def _imitation_record(variant, seed, nmi):
+    scores = {"f1_tol0": 0.9, "f1_tol1": 0.9, "align_acc": 0.9, "nmi": nmi, "diagonal": [0.9, 0.9, 0.9],
+              "diagonal_mean": 0.9, "off_diagonal_max": 0.1, "mean_success_rate": 0.9,
+              "success_rate": {"AC": 0.9, "CD": 0.9, "DA": 0.9}}
+    return {"variant": variant, "seed": seed, "train_wall_s": 60.0, "scores": scores}
+
+
+def test_imitation_keeps_the_earlier_runs_of_the_same_study_and_refuses_another_studys_file(tmp_path):
+    from tools.reproduce import imitation
+
+    earlier_args = _imitation_args(tmp_path, "--seeds", "2", "--variants", "3options_T10")
+    earlier = [_imitation_record("3 options, T=10", 1, 0.9), _imitation_record("3 options, T=10", 2, 0.8)]
+    imitation.write_results(earlier_args, [{"made_by": {"command": "ocn-reproduce first", "date": "d",
+                                                         "machine": imitation.provenance(earlier_args)["machine"]},
+                                            **r} for r in earlier], 2, 1.0)
+
+    args = _imitation_args(tmp_path, "--seeds", "2", "--variants", "3options_T10,6options_T10")
+    kept = imitation.earlier_runs(args, imitation.planned_runs(args))
+    assert kept == []  # this invocation remakes both main seeds
+    args = _imitation_args(tmp_path, "--variants", "6options_T10")
+    kept = imitation.earlier_runs(args, imitation.planned_runs(args))
+    assert [(r["variant"], r["seed"], r["made_by"]["command"]) for r in kept] == [
+        ("3 options, T=10", 1, "ocn-reproduce first"), ("3 options, T=10", 2, "ocn-reproduce first")]
+
+    new = {"made_by": {"command": "ocn-reproduce second", "date": "e", "machine": kept[0]["made_by"]["machine"]},
+           **_imitation_record("6 options, T=10", 1, 0.7)}
+    result = imitation.write_results(args, imitation.in_study_order([new, *kept]), 3, 1.0)
+    assert [(r["variant"], r["seed"]) for r in result["runs"]] == [
+        ("3 options, T=10", 1), ("3 options, T=10", 2), ("6 options, T=10", 1)]
+    assert result["summary"]["3 options, T=10"]["nmi"]["mean"] == pytest.approx(0.85)
+    assert {c["check"]: c["holds"] for c in result["must_show"]}["6 options, T=10: NMI >= 0.9"] is False
+    text = (tmp_path / "imitation_s1.md").read_text()
+    assert "| `ocn-reproduce first` | d |" in text and "3 options, T=10 seed 1; 3 options, T=10 seed 2 |" in text
+    assert "| `ocn-reproduce second` | e |" in text and "6 options, T=10 seed 1 |" in text
+
+    with pytest.raises(SystemExit, match="other settings \\(steps 5000 there, 250 here\\)"):
+        imitation.earlier_runs(_imitation_args(tmp_path, "--steps", "250"), [])

@@ -9,6 +9,7 @@ with plots. Finished runs are reused, so an interrupted reproduction continues w
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,10 @@ S1_REPO_ID = "local/craft_s1"
 # paper's constant lr and OMPN's observation). A run spells one out, and gets its own folder, only
 # when it differs from the default, so runs made before the option existed keep their command.
 STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": SequenceConfig.obs_encoder}
+# The settings that decide a run's scores: runs in a results file are kept by a later invocation only
+# when these match (`earlier_runs`).
+STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
+              "lr_schedule", "obs_encoder", "rollouts")
 METRICS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "diagonal_mean", "off_diagonal_max", "mean_success_rate")
 
 
@@ -164,7 +169,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"on the validation split "
         f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Runs finished: "
         f"{result['runs_finished']} of {result['runs_planned']}; wall time of this invocation "
-        f"{result['wall_s'] / 60:.0f} min (runs finished before it were reused; each run's training time is below).",
+        f"{result['wall_s'] / 60:.0f} min (runs finished before it were reused; each run's training time is below). "
+        "Runs an earlier invocation of the same study wrote here are kept (see the invocations at the end).",
         "",
         "## Must-show checks",
         "",
@@ -187,8 +193,21 @@ def markdown(result: dict[str, Any]) -> str:
             f"{'; '.join(r.get('trained_on') or ['not recorded'])} |"
         )
     lines += ["", "Plots: `imitation_s1.png` (every metric, seeds as dots), `imitation_s1_option_table.png` "
-              "(option x subtask success of the first main-variant seed).", ""]
-    return "\n".join(lines)
+              "(option x subtask success of the first main-variant seed).", "", "## Invocations", "",
+              "| command | date | machine | runs it made |", "|---|---|---|---|"]
+    for made_by, runs in invocations(result["runs"]):
+        lines.append(f"| `{made_by['command']}` | {made_by['date']} | {machine_words(made_by['machine'])} | "
+                     f"{'; '.join(runs)} |")
+    return "\n".join(lines + [""])
+
+
+def invocations(records: list[dict[str, Any]]) -> list[tuple[dict[str, Any], list[str]]]:
+    """Each distinct invocation that made some of the records (`made_by`), with the runs it made."""
+    made: dict[str, tuple[dict[str, Any], list[str]]] = {}
+    for r in records:
+        key = json.dumps(r["made_by"], sort_keys=True)
+        made.setdefault(key, (r["made_by"], []))[1].append(f"{r['variant']} seed {r['seed']}")
+    return list(made.values())
 
 
 def planned_runs(args: argparse.Namespace) -> list[tuple[Variant, int]]:
@@ -207,16 +226,45 @@ def planned_runs(args: argparse.Namespace) -> list[tuple[Variant, int]]:
     ]
 
 
+def earlier_runs(args: argparse.Namespace, planned: list[tuple[Variant, int]]) -> list[dict[str, Any]]:
+    """The runs in `results/imitation_s1.json` that this invocation does not make, each stamped with the
+    invocation that made it. A study's seeds and ablations can then be trained over several sessions
+    (whose workdirs do not outlive them) and still add up in one file. A file made under other
+    `STUDY_KEYS` is refused rather than mixed or overwritten."""
+    path = args.results / "imitation_s1.json"
+    if not path.exists():
+        return []
+    earlier = json.loads(path.read_text())
+    differing = [f"{key} {earlier['settings'].get(key)!r} there, {getattr(args, key)!r} here" for key in STUDY_KEYS
+                 if earlier["settings"].get(key) != getattr(args, key)]
+    if differing:
+        raise SystemExit(f"{path} holds runs made with other settings ({'; '.join(differing)}); pass another "
+                         "--results, or move that file away to start the study over.")
+    making = {(variant.name, seed) for variant, seed in planned}
+    stamp = {key: earlier[key] for key in ("command", "date", "machine")}
+    return [{"made_by": stamp, **record} for record in earlier["runs"] if (record["variant"], record["seed"]) not in making]
+
+
+def in_study_order(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Records ordered as `VARIANTS`, then by seed."""
+    order = {variant.name: k for k, variant in enumerate(VARIANTS)}
+    return sorted(records, key=lambda r: (order[r["variant"]], r["seed"]))
+
+
 def imitation_s1(args: argparse.Namespace) -> int:
-    """Every planned run in turn; the results files are rewritten after each one, so a reproduction
-    stopped part-way leaves results for the runs it finished (the files say how many)."""
+    """Every planned run in turn, beside the earlier runs the results file holds; the results files are
+    rewritten after each one, so a reproduction stopped part-way leaves results for the runs it finished
+    (the files say how many)."""
     started = time.perf_counter()
     planned = planned_runs(args)
+    kept = earlier_runs(args, planned)
     data = s1_data(args)
+    made_by = {key: value for key, value in provenance(args).items() if key in ("command", "date", "machine")}
     records: list[dict[str, Any]] = []
     for variant, seed in planned:
-        records.append(run_one(args, data, variant, seed))
-        result = write_results(args, records, len(planned), time.perf_counter() - started)
+        records.append({"made_by": made_by, **run_one(args, data, variant, seed)})
+        result = write_results(args, in_study_order(kept + records), len(planned) + len(kept),
+                               time.perf_counter() - started)
     print(markdown(result))
     return 0
 
