@@ -255,7 +255,8 @@ def trim_trailing_padding(mask: Tensor, *windows: Tensor) -> tuple[Tensor, ...]:
 
 
 def window_nll(
-    log_prob: Tensor, mask: Tensor, reduction: str, after_first: dict[str, Tensor]
+    log_prob: Tensor, mask: Tensor, reduction: str, after_first: dict[str, Tensor],
+    penalties: dict[str, tuple[float, Tensor]] | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
     """The training loss from log p(a_t) [B, T] of windows with real frames mask [B, T]: the NLL's
     mean over each window's real frames, then over the windows that have any (skipped long-episode
@@ -263,14 +264,19 @@ def window_nll(
 
     Stats: nll, frames_used, and the mean over real frames t > 1 of each `after_first` quantity
     (time-major [T, B], detached here): a model's per-step readout, meaningless at t = 1.
+    `penalties` name (weight, quantity [T, B]) pairs whose mean over each window's real frames t > 1,
+    times the weight, joins that window's loss (stats: the quantity's mean, as for `after_first`).
     """
     mask = mask.float()
     frames = mask.sum(1)
     per_window = (-log_prob * mask).sum(1) / frames.clamp_min(1.0)
     later = mask[:, 1:]
     stats = {"nll": per_window.mean().item(), "frames_used": int(frames.sum().item())}
-    for name, value in after_first.items():
-        stats[name] = float((value[1:].detach().transpose(0, 1) * later).sum() / later.sum().clamp_min(1.0))
+    for name, (weight, value) in {**{name: (0.0, v) for name, v in after_first.items()}, **(penalties or {})}.items():
+        sums = (value[1:].transpose(0, 1) * later).sum(1)
+        stats[name] = float(sums.detach().sum() / later.sum().clamp_min(1.0))
+        if weight:
+            per_window = per_window + weight * sums / later.sum(1).clamp_min(1.0)
     if reduction == "none":
         return per_window, stats
     return per_window.sum() / (frames > 0).sum().clamp_min(1), stats

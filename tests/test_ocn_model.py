@@ -212,6 +212,29 @@ def test_forced_restart_rate_is_a_probability_for_ocn_only():
         make_policy(forced_restart_rate=0.1, hierarchy="hil")
 
 
+def test_termination_cost_adds_the_weighted_mean_termination_after_the_first_step_and_pushes_it_down():
+    batch = make_batch(steps=5)
+    batch[f"{ACTION}_is_pad"][0, 3:] = True  # window 0 has 3 real frames, so 2 after its first
+    plain_policy = make_policy()
+    plain_loss, plain = plain_policy.forward(batch)
+    plain_loss.backward()
+    policy = make_policy(termination_cost=0.5)
+    loss, stats = policy.forward(batch)
+    out = policy._unroll(batch[OBS_STATE], batch["task"])
+    end = out.end[1:].transpose(0, 1).detach()
+    per_window = torch.stack([end[0, :2].mean()] + [row.mean() for row in end[1:]])
+    torch.testing.assert_close(loss, plain_loss + 0.5 * per_window.mean())
+    assert stats["nll"] == pytest.approx(plain["nll"]) and stats["mean_end"] == pytest.approx(plain["mean_end"])
+    loss.backward()
+    # The cost's own gradient on each option's termination bias is positive: descent lowers every e_{i,t}.
+    cost_grad = policy.core.options.b_out.grad[..., -1] - plain_policy.core.options.b_out.grad[..., -1]
+    assert (cost_grad > 0).all()
+    with pytest.raises(ValueError, match="termination_cost must be >= 0, got -1.0"):
+        make_policy(termination_cost=-1.0)
+    with pytest.raises(ValueError, match="termination_cost is for hierarchy='ocn'"):
+        make_policy(termination_cost=0.1, hierarchy="moe")
+
+
 def test_initial_state_std_draws_distinct_task_states_that_send_tasks_to_different_options():
     zero = make_policy().core
     assert not zero.controller_init.any() and not zero.option_init.any()

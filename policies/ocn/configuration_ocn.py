@@ -68,6 +68,13 @@ class OCNConfig(SequenceConfig):
     # 0 starts them all at zero (every task then first picks the same options), > 0 draws them from
     # N(0, std^2). The paper does not say.
     initial_state_std: float = 0.0
+    # Added to the loss: this weight times the mean of e_t over each window's real frames after the
+    # first (0: the paper's loss). Within a subtask a termination costs the NLL nothing when the
+    # controller picks the same option again, so the paper's loss leaves the options free to end
+    # mid-subtask, which fails them when they run alone (the option x subtask table, and finetuning,
+    # where the new controller may then pick another). A cost per termination (option-critic's
+    # "deliberation cost") keeps only the terminations that the actions pay for: the subtask ends.
+    termination_cost: float = 0.0
 
     # How `select_action` runs the hierarchy. "soft": the differentiable eq. 17 mixture that training
     # uses. "hard": the option-level semantics of the RL phase (appendix A.1): the controller samples
@@ -107,6 +114,12 @@ class OCNConfig(SequenceConfig):
         if self.forced_restart_rate and self.hierarchy != "ocn":
             raise ValueError(
                 f"forced_restart_rate is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}."
+            )
+        if self.termination_cost < 0:
+            raise ValueError(f"termination_cost must be >= 0, got {self.termination_cost}.")
+        if self.termination_cost and self.hierarchy != "ocn":
+            raise ValueError(
+                f"termination_cost is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}."
             )
         if self.initial_state_std < 0:
             raise ValueError(f"initial_state_std must be >= 0, got {self.initial_state_std}.")

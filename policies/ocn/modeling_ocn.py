@@ -112,7 +112,8 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
         mask, state, action = training_windows(self.config, batch)
         out = self._unroll(state, batch["task"])
-        return window_nll(self._action_log_prob(out, action), mask, reduction, {"mean_end": out.end})
+        return window_nll(self._action_log_prob(out, action), mask, reduction, {},
+                          {"mean_end": (self.config.termination_cost, out.end)})
 
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:
