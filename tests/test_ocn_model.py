@@ -13,6 +13,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
+from policies.ocn.modeling_ocn import usage_imbalance
 from policies.ocn.heads import DiscreteHead, GaussianHead, mixture_log_prob, sample_index
 from policies.ocn.recurrence import OCNState
 from policies.sequence import training_windows
@@ -233,6 +234,38 @@ def test_termination_cost_adds_the_weighted_mean_termination_after_the_first_ste
         make_policy(termination_cost=-1.0)
     with pytest.raises(ValueError, match="termination_cost is for hierarchy='ocn'"):
         make_policy(termination_cost=0.1, hierarchy="moe")
+
+
+def test_usage_imbalance_is_the_kl_of_the_real_frames_option_share_to_uniform():
+    p_c = torch.tensor([[[1.0, 0.0]], [[0.5, 0.5]], [[0.0, 1.0]]])  # [T=3, B=1, N=2]
+    mask = torch.tensor([[True, True, False]])  # the last frame is padding
+    expected = 0.75 * math.log(0.75 * 2) + 0.25 * math.log(0.25 * 2)
+    assert usage_imbalance(p_c, mask).item() == pytest.approx(expected)
+    assert usage_imbalance(torch.full((4, 2, 3), 1 / 3), torch.ones(2, 4, dtype=torch.bool)).item() == pytest.approx(0.0)
+    one_option = torch.nn.functional.one_hot(torch.zeros(4, 2, dtype=torch.long), 3).float()
+    assert usage_imbalance(one_option, torch.ones(2, 4, dtype=torch.bool)).item() == pytest.approx(math.log(3))
+
+
+def test_usage_balance_adds_the_weighted_imbalance_and_moves_the_controller_toward_the_rarer_options():
+    batch = make_batch(steps=5)
+    batch[f"{ACTION}_is_pad"][0, 3:] = True
+    plain_policy, policy = make_policy(), make_policy(usage_balance=2.0)
+    with torch.no_grad():  # tilt the controller toward option 0 in both policies alike
+        for tilted in (plain_policy, policy):
+            tilted.core.controller.b_out[0, 0, 0] += 5.0
+    plain_loss, plain = plain_policy.forward(batch)
+    plain_loss.backward()
+    loss, stats = policy.forward(batch)
+    assert stats["usage_imbalance"] == pytest.approx(plain["usage_imbalance"]) and stats["usage_imbalance"] > 0.01
+    torch.testing.assert_close(loss, plain_loss + 2.0 * stats["usage_imbalance"])
+    loss.backward()
+    # The term's own gradient on the controller's output bias: positive for the favoured option 0
+    # (descent lowers its logit), negative for the others.
+    grads = [p.core.controller.b_out.grad[0, 0, :N_OPTIONS] for p in (policy, plain_policy)]
+    balance_grad = grads[0] - grads[1]
+    assert balance_grad[0] > 0 and (balance_grad[1:] < 0).all()
+    with pytest.raises(ValueError, match="usage_balance must be >= 0, got -0.5"):
+        make_policy(usage_balance=-0.5)
 
 
 def test_initial_state_std_draws_distinct_task_states_that_send_tasks_to_different_options():

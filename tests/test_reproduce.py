@@ -95,15 +95,18 @@ def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_an
         imitation.add_parser(parser.add_subparsers())
         return imitation.study_overrides(parser.parse_args(["imitation-s1", *argv]))
 
-    assert overrides() == overrides("--lr-schedule", "constant", "--obs-encoder", "craft") == {}
-    assert overrides("--lr-schedule", "cosine") == {"lr_schedule": "cosine"}
-    both = overrides("--obs-encoder", "craft_full_view", "--lr-schedule", "cosine")
+    paper = ("--usage-balance", "0")
+    assert overrides(*paper) == overrides(*paper, "--lr-schedule", "constant", "--obs-encoder", "craft") == {}
+    assert overrides() == {"usage_balance": 1.0}  # the study's own default
+    assert overrides(*paper, "--lr-schedule", "cosine") == {"lr_schedule": "cosine"}
+    both = overrides(*paper, "--obs-encoder", "craft_full_view", "--lr-schedule", "cosine")
     assert both == {"lr_schedule": "cosine", "obs_encoder": "craft_full_view"}
     main = imitation.VARIANTS[0]
     assert imitation.run_dir(Path("w"), main, 1) == Path("w/imitation_s1/3options_T10/seed1")
-    assert imitation.run_dir(Path("w"), main, 1, overrides("--lr-schedule", "cosine")) == Path(
+    assert imitation.run_dir(Path("w"), main, 1, overrides(*paper, "--lr-schedule", "cosine")) == Path(
         "w/imitation_s1/3options_T10_cosine/seed1")
     assert imitation.run_dir(Path("w"), main, 2, both) == Path("w/imitation_s1/3options_T10_cosine_craft_full_view/seed2")
+    assert imitation.run_dir(Path("w"), main, 1, overrides()) == Path("w/imitation_s1/3options_T10_usage_balance1.0/seed1")
 
 
 def test_imitation_runs_can_be_limited_to_chosen_variants():
@@ -120,6 +123,8 @@ def test_imitation_runs_can_be_limited_to_chosen_variants():
     assert planned("--seeds", "2", "--ablation-seeds", "0") == [("3options_T10", 1), ("3options_T10", 2)]
     assert planned("--variants", "6options_T10,3options_T10", "--seeds", "1", "--ablation-seeds", "2") == [
         ("3options_T10", 1), ("6options_T10", 1), ("6options_T10", 2)]
+    assert planned("--first-seed", "3", "--seeds", "2", "--ablation-seeds", "0") == [("3options_T10", 3),
+                                                                                     ("3options_T10", 4)]
     with pytest.raises(SystemExit, match="unknown \\['7options'\\]"):
         planned("--variants", "7options")
 
@@ -214,3 +219,12 @@ def test_imitation_keeps_the_earlier_runs_of_the_same_study_and_refuses_another_
 
     with pytest.raises(SystemExit, match="other settings \\(steps 5000 there, 250 here\\)"):
         imitation.earlier_runs(_imitation_args(tmp_path, "--steps", "250"), [])
+
+    # A file written before --usage-balance existed holds runs of the paper's loss (a balance of 0).
+    path = tmp_path / "imitation_s1.json"
+    written = json.loads(path.read_text())
+    del written["settings"]["usage_balance"]
+    path.write_text(json.dumps(written))
+    with pytest.raises(SystemExit, match="other settings \\(usage_balance 0.0 there, 1.0 here\\)"):
+        imitation.earlier_runs(args, [])
+    assert len(imitation.earlier_runs(_imitation_args(tmp_path, "--usage-balance", "0"), [])) == 3

@@ -63,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
          "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false", "--env_eval_freq=0",
          f"--steps={args.train_steps}", f"--batch_size={args.batch_size}", "--num_workers=1",
          f"--save_freq={args.train_steps}", f"--log_freq={max(1, args.train_steps // 4)}",
-         f"--policy.window_size={int(lengths.max())}", f"--seed={args.seed}", f"--output_dir={train_dir}"],
+         f"--policy.window_size={int(lengths.max())}", "--policy.usage_balance=1.0", f"--seed={args.seed}",
+         f"--output_dir={train_dir}"],
         check=True,
     )
 

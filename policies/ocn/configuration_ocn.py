@@ -75,6 +75,13 @@ class OCNConfig(SequenceConfig):
     # where the new controller may then pick another). A cost per termination (option-critic's
     # "deliberation cost") keeps only the terminations that the actions pay for: the subtask ends.
     termination_cost: float = 0.0
+    # Added to the loss: this weight times KL(u || uniform), u being the batch's mean p^c over its
+    # real frames (0: the paper's loss). Under the NLL alone, the option that first fits a little
+    # better is picked more, so it trains more and is picked more still: within a few hundred
+    # steps one option takes most frames and learns to infer its subtask from the observation,
+    # and the others wait for a split that may or may not come (the load-balancing term of
+    # mixture-of-experts models, on the option shares).
+    usage_balance: float = 0.0
 
     # How `select_action` runs the hierarchy. "soft": the differentiable eq. 17 mixture that training
     # uses. "hard": the option-level semantics of the RL phase (appendix A.1): the controller samples
@@ -121,6 +128,8 @@ class OCNConfig(SequenceConfig):
             raise ValueError(
                 f"termination_cost is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}."
             )
+        if self.usage_balance < 0:
+            raise ValueError(f"usage_balance must be >= 0, got {self.usage_balance}.")
         if self.initial_state_std < 0:
             raise ValueError(f"initial_state_std must be >= 0, got {self.initial_state_std}.")
         if self.temperature <= 0:

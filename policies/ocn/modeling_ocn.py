@@ -37,6 +37,14 @@ class StepReport:
     decided: Tensor | None = None
 
 
+def usage_imbalance(p_c: Tensor, mask: Tensor) -> Tensor:
+    """KL(u || uniform) of the options' share u = the mean of p^c [T, B, N] over real frames mask [B, T]:
+    0 when every option takes as many frames as the others, log N when one takes them all."""
+    weights = mask.transpose(0, 1).unsqueeze(-1).to(p_c.dtype)
+    share = (p_c * weights).sum((0, 1)) / weights.sum().clamp_min(1.0)
+    return (share * torch.log(share.clamp_min(1e-12) * p_c.shape[-1])).sum()
+
+
 class OCNPolicy(SequencePolicy, PreTrainedPolicy):
     """Option-Controller Network: a shared controller over N options, one initial state per task."""
 
@@ -112,8 +120,13 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
         mask, state, action = training_windows(self.config, batch)
         out = self._unroll(state, batch["task"])
-        return window_nll(self._action_log_prob(out, action), mask, reduction, {},
-                          {"mean_end": (self.config.termination_cost, out.end)})
+        loss, stats = window_nll(self._action_log_prob(out, action), mask, reduction, {},
+                                 {"mean_end": (self.config.termination_cost, out.end)})
+        imbalance = usage_imbalance(out.p_c, mask)
+        stats["usage_imbalance"] = imbalance.item()
+        if self.config.usage_balance:
+            loss = loss + self.config.usage_balance * imbalance
+        return loss, stats
 
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:

@@ -95,7 +95,8 @@ def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -
 def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
     """The method's behaviour-cloned checkpoints for one seed, one per demonstration set.
 
-    S1's OCN is the imitation study's main variant, so both reproductions share those runs.
+    S1's OCN is the imitation study's main variant under the paper's loss (`imitation-s1
+    --usage-balance 0`), so both reproductions share those runs.
     """
     settings, overrides = clone_settings(args, setting, method)
     runs = []

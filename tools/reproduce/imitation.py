@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from policies.ocn import OCNConfig
 from policies.sequence import CRAFT_ENCODERS, LR_SCHEDULES, SequenceConfig
 from tools.bench import RESULTS
 
@@ -28,11 +29,15 @@ S1_REPO_ID = "local/craft_s1"
 # Study-wide `--policy.*` settings chosen on this command line, with the policy's own defaults (the
 # paper's constant lr and OMPN's observation). A run spells one out, and gets its own folder, only
 # when it differs from the default, so runs made before the option existed keep their command.
-STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": SequenceConfig.obs_encoder}
+STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": SequenceConfig.obs_encoder,
+                  "usage_balance": OCNConfig.usage_balance}
+# The option-usage balance this study trains with unless told otherwise: without it, whether the
+# options split the subtasks within a run's steps is a matter of the run (README, results).
+STUDY_USAGE_BALANCE = 1.0
 # The settings that decide a run's scores: runs in a results file are kept by a later invocation only
 # when these match (`earlier_runs`).
 STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
-              "lr_schedule", "obs_encoder", "rollouts")
+              "lr_schedule", "obs_encoder", "usage_balance", "rollouts")
 METRICS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "diagonal_mean", "off_diagonal_max", "mean_success_rate")
 
 
@@ -78,7 +83,7 @@ def study_overrides(args: argparse.Namespace) -> dict[str, str]:
 def run_dir(workdir: Path, variant: Variant, seed: int, overrides: dict[str, str] | None = None) -> Path:
     """A run's folder; runs under non-default study settings (`study_overrides`) get their own, named
     after them (`3options_T10_cosine`), so that every kind lives in one workdir."""
-    suffix = "".join(f"_{value}" for value in (overrides or {}).values())
+    suffix = "".join(f"_{value}" if isinstance(value, str) else f"_{key}{value}" for key, value in (overrides or {}).items())
     return workdir / "imitation_s1" / f"{_slug(variant.name)}{suffix}" / f"seed{seed}"
 
 
@@ -164,7 +169,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Training: `lerobot-train`, {result['settings']['steps']} steps of "
         f"{result['settings']['batch_size']} windows (episodes), {result['settings']['lr_schedule']} learning "
-        f"rate, controller learning-rate scale {result['settings']['controller_lr_scale']}, observation encoder "
+        f"rate, controller learning-rate scale {result['settings']['controller_lr_scale']}, option-usage balance "
+        f"{result['settings'].get('usage_balance', STUDY_DEFAULTS['usage_balance'])}, observation encoder "
         f"`{result['settings']['obs_encoder']}`; scores: `ocn-eval` "
         f"on the validation split "
         f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Runs finished: "
@@ -212,7 +218,8 @@ def invocations(records: list[dict[str, Any]]) -> list[tuple[dict[str, Any], lis
 
 def planned_runs(args: argparse.Namespace) -> list[tuple[Variant, int]]:
     """(variant, seed) of every run the invocation makes, in order: the main variant's `--seeds`, then
-    each ablation's `--ablation-seeds`, of the `--variants` chosen (all by default)."""
+    each ablation's `--ablation-seeds`, of the `--variants` chosen (all by default), counting seeds
+    from `--first-seed`."""
     slugs = {_slug(variant.name): variant for variant in VARIANTS}
     chosen = list(slugs) if args.variants is None else args.variants.split(",")
     unknown = sorted(set(chosen) - set(slugs))
@@ -222,7 +229,7 @@ def planned_runs(args: argparse.Namespace) -> list[tuple[Variant, int]]:
         (variant, seed)
         for slug, variant in slugs.items()
         if slug in chosen
-        for seed in range(1, 1 + (args.seeds if variant.main else args.ablation_seeds))
+        for seed in range(args.first_seed, args.first_seed + (args.seeds if variant.main else args.ablation_seeds))
     ]
 
 
@@ -235,8 +242,10 @@ def earlier_runs(args: argparse.Namespace, planned: list[tuple[Variant, int]]) -
     if not path.exists():
         return []
     earlier = json.loads(path.read_text())
-    differing = [f"{key} {earlier['settings'].get(key)!r} there, {getattr(args, key)!r} here" for key in STUDY_KEYS
-                 if earlier["settings"].get(key) != getattr(args, key)]
+    # A file written before a setting existed was made at the policy's default for it.
+    settings = {**STUDY_DEFAULTS, **earlier["settings"]}
+    differing = [f"{key} {settings.get(key)!r} there, {getattr(args, key)!r} here" for key in STUDY_KEYS
+                 if settings.get(key) != getattr(args, key)]
     if differing:
         raise SystemExit(f"{path} holds runs made with other settings ({'; '.join(differing)}); pass another "
                          "--results, or move that file away to start the study over.")
@@ -257,12 +266,14 @@ def imitation_s1(args: argparse.Namespace) -> int:
     (the files say how many)."""
     started = time.perf_counter()
     planned = planned_runs(args)
-    kept = earlier_runs(args, planned)
+    earlier_runs(args, planned)  # refuses another study's results file before anything trains
     data = s1_data(args)
     made_by = {key: value for key, value in provenance(args).items() if key in ("command", "date", "machine")}
     records: list[dict[str, Any]] = []
     for variant, seed in planned:
         records.append({"made_by": made_by, **run_one(args, data, variant, seed)})
+        # Read afresh: an invocation running beside this one (other seeds) may have written since.
+        kept = earlier_runs(args, planned)
         result = write_results(args, in_study_order(kept + records), len(planned) + len(kept),
                                time.perf_counter() - started)
     print(markdown(result))
@@ -295,6 +306,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     s1.add_argument("--seeds", type=int, default=5, help="seeds of the main variant (3 options, T=10)")
     s1.add_argument("--ablation-seeds", type=int, default=1, help="seeds of each ablation; 0 skips them")
+    s1.add_argument("--first-seed", type=int, default=1,
+                    help="seed to count from: `--first-seed 3 --seeds 2` trains seeds 3 and 4, so that the seeds "
+                         "of one study can train in several invocations (side by side or in turn) and add up")
     s1.add_argument("--variants", default=None,
                     help=f"comma-separated variants to run, of {','.join(_slug(v.name) for v in VARIANTS)} "
                          "(default: all); the results files then cover those runs")
@@ -304,6 +318,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--obs-encoder", choices=CRAFT_ENCODERS, default=STUDY_DEFAULTS["obs_encoder"],
                     help="observation of every run: OMPN's features (the paper's) or the exact map (README, "
                          "observation encoders)")
+    s1.add_argument("--usage-balance", type=float, default=STUDY_USAGE_BALANCE,
+                    help="weight of the option-usage balance term (OCNConfig.usage_balance; 0 is the paper's loss)")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
     s1.set_defaults(func=imitation_s1)

@@ -1,0 +1,158 @@
+"""`python -m tools.fast_imitation`: OCN behaviour cloning on whole episodes held in memory, for
+trying training recipes quickly; the reproductions train with `lerobot-train`.
+
+On 2 CPU cores `lerobot-train` spends most of each step waiting for LeRobot's windowed loading
+(`results/bench_train.md`), so one 5,000-step S1 run takes about an hour. This loop trains the
+same policy on the same objective about six times faster: `policy.forward` on batches of whole
+episodes, each drawn with probability proportional to its length (what sampling a window at every
+frame with `window_start=episode` gives), LeRobot's Adam preset with the policy's gradient clip,
+and every `--eval-every` steps the shared parsing metrics on the validation episodes. It writes
+the curve as JSON; `plot` draws curves of several runs. Craft's processors are identities, so the
+batches go to the policy as they are stored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+CURVE_METRICS = ("nmi", "f1_tol1", "align_acc")
+
+
+def parse_overrides(pairs: list[str]) -> dict[str, Any]:
+    """`key=value` pairs of OCNConfig fields, each value cast to its field's default's type."""
+    from policies.ocn import OCNConfig
+
+    fields = {field.name: field for field in dataclasses.fields(OCNConfig)}
+    overrides: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or key not in fields:
+            raise SystemExit(f"--set {pair!r}: expected FIELD=VALUE with an OCNConfig field.")
+        default = fields[key].default
+        if isinstance(default, bool):
+            if value.lower() not in ("true", "false"):
+                raise SystemExit(f"--set {pair!r}: {key} takes true or false.")
+            overrides[key] = value.lower() == "true"
+        else:
+            overrides[key] = type(default)(value) if isinstance(default, int | float | str) else value
+    return overrides
+
+
+def train(args: argparse.Namespace) -> dict[str, Any]:
+    """Train one seed, scoring the parse every `eval_every` steps; returns (and writes) the curve."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy
+    from ocn_data.episodes_table import load_episodes, split_episodes
+    from policies.ocn import OCNConfig
+    from tools.episode_parsing import parse_statistics, score_segmentations, segment_episodes
+
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    torch.set_num_threads(args.threads)
+    overrides = {"n_options": 3, "temperature": 10.0, **parse_overrides(args.set)}
+    config = OCNConfig(device="cpu", window_size=args.window_size, **overrides)
+    policy = make_policy(config, ds_meta=LeRobotDatasetMetadata(args.repo_id, root=args.root))
+    optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
+    train_split = load_episodes(args.root, split_episodes(args.root, "train"))
+    val_split = load_episodes(args.root, split_episodes(args.root, "val"), max_episodes=args.val_episodes)
+    state, action = torch.from_numpy(train_split.state).float(), torch.from_numpy(train_split.action).float()
+    pad = torch.from_numpy(~train_split.mask)
+    lengths = train_split.lengths
+    weights = lengths / lengths.sum()
+    curve: list[dict[str, Any]] = []
+    result = {"command": "python -m tools.fast_imitation " + " ".join(args.argv), "settings": dataclasses.asdict(config)
+              | {"seed": args.seed, "batch_size": args.batch_size, "steps": args.steps}, "curve": curve}
+    started, frames = time.perf_counter(), 0
+    for step in range(1, args.steps + 1):
+        rows = torch.from_numpy(rng.choice(len(lengths), args.batch_size, p=weights))
+        used = int(lengths[rows.numpy()].max())
+        batch = {OBS_STATE: state[rows, :used], ACTION: action[rows, :used], f"{ACTION}_is_pad": pad[rows, :used],
+                 "task": [train_split.tasks[i] for i in rows.tolist()]}
+        policy.train()
+        loss, stats = policy.forward(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optimizer_grad_clip_norm)
+        optimizer.step()
+        frames += stats["frames_used"]
+        if step % args.eval_every == 0 or step == args.steps:
+            policy.eval()
+            parses = segment_episodes(policy, lambda b: b, val_split)
+            point = {"step": step, **{key: stats[key] for key in ("nll", "mean_end", "usage_imbalance")},
+                     **score_segmentations(val_split, parses),
+                     "option_share": parse_statistics(val_split, parses).get("label_share"),
+                     "train_frames_per_s": frames / (time.perf_counter() - started)}
+            curve.append(point)
+            print(json.dumps(point), flush=True)
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+def plot(args: argparse.Namespace) -> None:
+    """One panel per metric, one line per curve file, labelled by the file's stem."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(CURVE_METRICS), figsize=(4.5 * len(CURVE_METRICS), 3.6))
+    for path in args.curves:
+        curve = json.loads(path.read_text())["curve"]
+        for ax, metric in zip(axes, CURVE_METRICS, strict=True):
+            ax.plot([p["step"] for p in curve], [p[metric] for p in curve], marker=".", label=path.stem)
+    for ax, metric in zip(axes, CURVE_METRICS, strict=True):
+        ax.set_title(metric)
+        ax.set_xlabel("training step")
+        ax.set_ylim(0, 1.02)
+    axes[-1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(args.png, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import sys
+
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(prog="python -m tools.fast_imitation", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("train", help="train one seed and write its curve",
+                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    run.add_argument("--root", type=Path, required=True, help="a record_demos Craft dataset with train/val splits")
+    run.add_argument("--repo-id", default="local/craft_s1")
+    run.add_argument("--out", type=Path, required=True, help="curve JSON, rewritten at every evaluation")
+    run.add_argument("--steps", type=int, default=5000)
+    run.add_argument("--batch-size", type=int, default=128, help="episodes per step")
+    run.add_argument("--window-size", type=int, default=24, help="longest episode (checked as under lerobot-train)")
+    run.add_argument("--seed", type=int, default=1)
+    run.add_argument("--eval-every", type=int, default=500)
+    run.add_argument("--val-episodes", type=int, default=1200, help="validation episodes scored (the first ones)")
+    run.add_argument("--threads", type=int, default=1)
+    run.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                     help="OCNConfig fields, over the imitation study's main variant (n_options=3, temperature=10.0)")
+    draw = sub.add_parser("plot", help="draw the curves of several runs into one PNG")
+    draw.add_argument("curves", type=Path, nargs="+")
+    draw.add_argument("--png", type=Path, required=True)
+    args = parser.parse_args(argv)
+    args.argv = argv
+    if args.command == "train":
+        train(args)
+    else:
+        plot(args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
