@@ -142,7 +142,7 @@ def test_ocn_reproduce_dial_help_lists_its_options(capsys):
     assert exit_info.value.code == 0
     text = capsys.readouterr().out
     for option in ("--seeds", "--frames", "--envs", "--rewards", "--methods", "--tasks", "--rollouts", "--steps",
-                   "--batch-size", "--episodes-per-task", "--workdir", "--results"):
+                   "--batch-size", "--episodes-per-task", "--workdir", "--results", "--first-seed", "--usage-balance"):
         assert option in text, option
 
 
@@ -168,6 +168,10 @@ def test_dial_clones_train_with_the_dial_flags_and_finetune_on_the_pins(dial_dat
     command = finetune_command(args, setting, moe, "sparse", 1, [clone], tmp_path / "out")
     assert command[command.index("--tasks") + 1] == "124,481,842" and "--flat" not in command
     assert command[command.index("--checkpoint") + 1] == str(clone.checkpoint)
+    # Clones under the usage balance live beside the paper-loss ones.
+    paper, balanced = (argparse.Namespace(workdir=tmp_path, usage_balance=w) for w in (0.0, 1.0))
+    assert dial.clone_dir(paper, moe, 2) == tmp_path / "clone" / "dial2" / "moe" / "seed2"
+    assert dial.clone_dir(balanced, moe, 2) == tmp_path / "clone" / "dial2" / "moe_usage_balance1.0" / "seed2"
 
 
 def test_dial_checks_hold_only_where_ocn_meets_the_bars_and_beats_moe():

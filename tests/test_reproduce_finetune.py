@@ -62,6 +62,15 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
     first = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())["runs"][0]
     assert "--steps=4" in first["clone_commands"][0]
 
+    # Under the usage balance the OCN clone is the imitation study's balanced run, and both the clone
+    # and its finetuning get folders of their own beside the paper-loss ones.
+    balanced = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--usage-balance", "1.0")
+    assert balanced.returncode == 0, balanced.stderr[-2000:]
+    clone_dir = tmp_path / "work" / "imitation_s1" / "3options_T10_usage_balance1.0" / "seed1"
+    assert "--policy.usage_balance=1.0" in (clone_dir / "train_command.txt").read_text()
+    assert (tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0" / "seed1" / "run" / "finetune.json").exists()
+    assert json.loads(step.read_text())["step"] == 4  # the paper-loss clone is left as it was
+
 
 def test_unknown_method_is_refused(tmp_path):
     done = _reproduce(tmp_path, "--methods", "ocn,options")

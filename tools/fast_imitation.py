@@ -51,7 +51,7 @@ def parse_overrides(pairs: list[str]) -> dict[str, Any]:
 def train(args: argparse.Namespace) -> dict[str, Any]:
     """Train one seed, scoring the parse every `eval_every` steps; returns (and writes) the curve."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-    from lerobot.policies.factory import make_policy
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
     from ocn_data.episodes_table import load_episodes, split_episodes
     from policies.ocn import OCNConfig
     from tools.episode_parsing import parse_statistics, score_segmentations, segment_episodes
@@ -61,7 +61,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     torch.set_num_threads(args.threads)
     overrides = {"n_options": 3, "temperature": 10.0, **parse_overrides(args.set)}
     config = OCNConfig(device="cpu", window_size=args.window_size, **overrides)
-    policy = make_policy(config, ds_meta=LeRobotDatasetMetadata(args.repo_id, root=args.root))
+    meta = LeRobotDatasetMetadata(args.repo_id, root=args.root)
+    policy = make_policy(config, ds_meta=meta)
     optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
     train_split = load_episodes(args.root, split_episodes(args.root, "train"))
     val_split = load_episodes(args.root, split_episodes(args.root, "val"), max_episodes=args.val_episodes)
@@ -96,6 +97,10 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             print(json.dumps(point), flush=True)
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(json.dumps(result, indent=1) + "\n")
+    if args.save is not None:
+        policy.save_pretrained(args.save)
+        for processor in make_pre_post_processors(config, dataset_stats=meta.stats):
+            processor.save_pretrained(args.save)
     return result
 
 
@@ -140,6 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--eval-every", type=int, default=500)
     run.add_argument("--val-episodes", type=int, default=1200, help="validation episodes scored (the first ones)")
     run.add_argument("--threads", type=int, default=1)
+    run.add_argument("--save", type=Path, default=None,
+                     help="also save the trained policy here as a pretrained_model folder (for ocn-eval, ocn-view)")
     run.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                      help="OCNConfig fields, over the imitation study's main variant (n_options=3, temperature=10.0)")
     draw = sub.add_parser("plot", help="draw the curves of several runs into one PNG")

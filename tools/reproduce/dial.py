@@ -72,14 +72,15 @@ def dial_data(args: argparse.Namespace) -> Path:
     return data
 
 
-def clone_dir(workdir: Path, method: Method, seed: int) -> Path:
-    return workdir / "clone" / DATA / method.key / f"seed{seed}"
+def clone_dir(args: argparse.Namespace, method: Method, seed: int) -> Path:
+    return args.workdir / "clone" / DATA / f"{method.key}{finetune.balance_suffix(args)}" / f"seed{seed}"
 
 
 def clone(args: argparse.Namespace, data: Path, method: Method, seed: int) -> TrainedRun:
     """The method's behaviour-cloned checkpoint for one seed (trained unless done before)."""
-    overrides = {"n_options": N_OPTIONS, "temperature": 10.0, **(method.overrides or {})}
-    return train_policy(train_settings(args), data, REPO_ID, clone_dir(args.workdir, method, seed), seed, overrides)
+    overrides = {"n_options": N_OPTIONS, "temperature": 10.0, **(method.overrides or {}),
+                 **finetune.balance_override(args)}
+    return train_policy(train_settings(args), data, REPO_ID, clone_dir(args, method, seed), seed, overrides)
 
 
 def imitation_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -191,11 +192,11 @@ def reproduce_dial(args: argparse.Namespace) -> int:
     imitated: list[dict[str, Any]] = []
     runs: list[dict[str, Any]] = []
     result: dict[str, Any] = {}
-    for seed in range(1, args.seeds + 1):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         for method in methods:
             trained = clone(args, data, method, seed)
             if method.key == "ocn":
-                folder = clone_dir(args.workdir, method, seed)
+                folder = clone_dir(args, method, seed)
                 imitated.append(evaluate_run(folder, trained, data, REPO_ID, args.rollouts,
                                              {"method": method.name, "seed": seed}))
             for reward in args.rewards:

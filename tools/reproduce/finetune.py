@@ -89,14 +89,26 @@ def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -
     settings = imitation.train_settings(args)
     if method.policy_type != "ocn":
         return replace(settings, policy={}, policy_type=method.policy_type), dict(method.overrides or {})
-    return settings, {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {})}
+    return settings, {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {}),
+                      **balance_override(args)}
+
+
+def balance_override(args: argparse.Namespace) -> dict[str, float]:
+    """`--policy.usage_balance` of the OCN-family clones (OCN, MoE, HIL alike), spelled out only
+    when it is not the paper's loss, so that runs made before the option existed keep their command."""
+    return {"usage_balance": args.usage_balance} if args.usage_balance else {}
+
+
+def balance_suffix(args: argparse.Namespace) -> str:
+    """Folder-name suffix of runs over balanced clones: they live beside the paper-loss ones."""
+    return f"_usage_balance{args.usage_balance}" if args.usage_balance else ""
 
 
 def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
     """The method's behaviour-cloned checkpoints for one seed, one per demonstration set.
 
-    S1's OCN is the imitation study's main variant under the paper's loss (`imitation-s1
-    --usage-balance 0`), so both reproductions share those runs.
+    S1's OCN is the imitation study's main variant at the same usage balance (`imitation-s1
+    --usage-balance W`), so both reproductions share those runs.
     """
     settings, overrides = clone_settings(args, setting, method)
     runs = []
@@ -104,9 +116,10 @@ def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int)
         data = args.workdir / folder
         record_dataset(data, tasks, f"local/{folder}", args.episodes_per_task, args.data_seed)
         if setting.name == "s1" and method.name == "OCN":
-            run_dir = imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed)
+            run_dir = imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed, balance_override(args))
         else:
-            run_dir = args.workdir / "clone" / folder / method.key / f"seed{seed}"
+            suffix = balance_suffix(args) if method.policy_type == "ocn" else ""
+            run_dir = args.workdir / "clone" / folder / f"{method.key}{suffix}" / f"seed{seed}"
         runs.append(train_policy(settings, data, f"local/{folder}", run_dir, seed, overrides))
     return runs
 
@@ -131,7 +144,8 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
     """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve.
     A finished run is made again when a clone it used was trained on since (`clones.json` keeps the
     clones' training commands; runs from before it existed are reused as they are)."""
-    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}" / f"seed{seed}"
+    suffix = balance_suffix(args) if method.policy_type == "ocn" and method.overrides is not None else ""
+    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}{suffix}" / f"seed{seed}"
     command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
     shown = " ".join(Path(word).name if word.startswith("/") else word for word in command)
     summary_path, command_path = out / "run" / "finetune.json", out / "finetune_command.txt"
@@ -353,7 +367,8 @@ def reproduce(args: argparse.Namespace) -> int:
         raise SystemExit(f"ocn-reproduce {setting.name}: {', '.join(unpooled)} cannot pool the skills of several "
                          "cloned models, which this setting merges (the paper leaves OMPN out of S2); drop it "
                          "from --methods.")
-    planned = [(m, reward, seed) for seed in range(1, args.seeds + 1) for m in methods for reward in args.rewards]
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
+    planned = [(m, reward, seed) for seed in seeds for m in methods for reward in args.rewards]
     runs: list[dict[str, Any]] = []
     result: dict[str, Any] = {}
     for method, reward, seed in planned:
@@ -377,6 +392,10 @@ def chosen_methods(args: argparse.Namespace, methods: tuple[Method, ...]) -> lis
 def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Method, ...], frames: int) -> None:
     """The options of a finetuning study's PPO runs: seeds, budget, envs, rewards and methods."""
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--first-seed", type=int, default=1, help="seeds run from this one on")
+    parser.add_argument("--usage-balance", type=float, default=0.0,
+                        help="weight of the option-usage balance term in the behaviour cloning of the OCN-family "
+                             "clones (OCN, MoE, HIL; OCNConfig.usage_balance); 0 is the paper's loss")
     parser.add_argument("--frames", type=int, default=frames, help="env frames per PPO run (the budget)")
     parser.add_argument("--envs", type=int, default=64, help="envs stepped together in PPO")
     parser.add_argument("--rewards", type=lambda s: s.split(","), default=list(REWARDS),
