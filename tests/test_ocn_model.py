@@ -13,7 +13,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
-from policies.ocn.modeling_ocn import usage_imbalance
+from policies.ocn.modeling_ocn import termination_penalty, usage_imbalance
 from policies.ocn.heads import DiscreteHead, GaussianHead, mixture_log_prob, sample_index
 from policies.ocn.recurrence import OCNState
 from policies.sequence import training_windows
@@ -232,8 +232,31 @@ def test_termination_cost_adds_the_weighted_mean_termination_after_the_first_ste
     assert (cost_grad > 0).all()
     with pytest.raises(ValueError, match="termination_cost must be >= 0, got -1.0"):
         make_policy(termination_cost=-1.0)
+    with pytest.raises(ValueError, match="`termination_penalty` must be one of"):
+        make_policy(termination_penalty="square")
     with pytest.raises(ValueError, match="termination_cost is for hierarchy='ocn'"):
         make_policy(termination_cost=0.1, hierarchy="moe")
+
+
+def test_log_termination_penalty_charges_minus_log_one_minus_e_and_keeps_its_gradient_where_e_is_confident():
+    batch = make_batch(steps=5)
+    batch[f"{ACTION}_is_pad"][0, 3:] = True
+    plain_loss, plain = make_policy().forward(batch)
+    policy = make_policy(termination_cost=0.5, termination_penalty="log")
+    loss, stats = policy.forward(batch)
+    end = policy._unroll(batch[OBS_STATE], batch["task"]).end[1:].transpose(0, 1).detach()
+    penalty = -torch.log(1 - end)
+    per_window = torch.stack([penalty[0, :2].mean()] + [row.mean() for row in penalty[1:]])
+    torch.testing.assert_close(loss, plain_loss + 0.5 * per_window.mean())
+    assert stats["mean_end"] == pytest.approx(plain["mean_end"])  # still the mean e_t, whatever the penalty
+    pooled = (penalty[0, :2].sum() + penalty[1:].sum()) / (2 + penalty[1:].numel())  # over real frames t > 1
+    assert stats["termination_penalty"] == pytest.approx(pooled.item())
+    # d/dlogit of the penalty is e (log) against e (1 - e) (linear): at e = 0.99 the log form pulls 100x harder.
+    logit = torch.tensor(4.59512, requires_grad=True)  # sigmoid = 0.99
+    for kind, expected in (("linear", 0.99 * 0.01), ("log", 0.99)):
+        (grad,) = torch.autograd.grad(termination_penalty(make_policy(termination_penalty=kind).config,
+                                                          torch.sigmoid(logit)), logit)
+        assert grad.item() == pytest.approx(expected, rel=1e-3)
 
 
 def test_usage_imbalance_is_the_kl_of_the_real_frames_option_share_to_uniform():

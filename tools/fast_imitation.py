@@ -53,16 +53,22 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
     from lerobot.policies.factory import make_policy, make_pre_post_processors
     from ocn_data.episodes_table import load_episodes, split_episodes
-    from policies.ocn import OCNConfig
+    from lerobot.configs import PreTrainedConfig
+    from policies.ocn import OCNConfig, OCNPolicy
     from tools.episode_parsing import parse_statistics, score_segmentations, segment_episodes
 
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     torch.set_num_threads(args.threads)
-    overrides = {"n_options": 3, "temperature": 10.0, **parse_overrides(args.set)}
-    config = OCNConfig(device="cpu", window_size=args.window_size, **overrides)
     meta = LeRobotDatasetMetadata(args.repo_id, root=args.root)
-    policy = make_policy(config, ds_meta=meta)
+    if args.init is None:
+        overrides = {"n_options": 3, "temperature": 10.0, **parse_overrides(args.set)}
+        config = OCNConfig(device="cpu", window_size=args.window_size, **overrides)
+        policy = make_policy(config, ds_meta=meta)
+    else:
+        config = dataclasses.replace(PreTrainedConfig.from_pretrained(args.init), device="cpu",
+                                     **parse_overrides(args.set))
+        policy = OCNPolicy.from_pretrained(args.init, config=config)
     optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
     train_split = load_episodes(args.root, split_episodes(args.root, "train"))
     val_split = load_episodes(args.root, split_episodes(args.root, "val"), max_episodes=args.val_episodes)
@@ -145,10 +151,14 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--eval-every", type=int, default=500)
     run.add_argument("--val-episodes", type=int, default=1200, help="validation episodes scored (the first ones)")
     run.add_argument("--threads", type=int, default=1)
+    run.add_argument("--init", type=Path, default=None,
+                     help="continue an ocn pretrained_model folder (its config, then --set) instead of a fresh policy; "
+                          "the optimizer starts afresh")
     run.add_argument("--save", type=Path, default=None,
                      help="also save the trained policy here as a pretrained_model folder (for ocn-eval, ocn-view)")
     run.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                     help="OCNConfig fields, over the imitation study's main variant (n_options=3, temperature=10.0)")
+                     help="OCNConfig fields, over the imitation study's main variant (n_options=3, temperature=10.0) "
+                          "or over --init's config")
     draw = sub.add_parser("plot", help="draw the curves of several runs into one PNG")
     draw.add_argument("curves", type=Path, nargs="+")
     draw.add_argument("--png", type=Path, required=True)

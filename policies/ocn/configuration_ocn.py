@@ -9,6 +9,7 @@ from policies.sequence import SequenceConfig, check_choice
 
 EXECUTIONS = ("soft", "hard")
 HIERARCHIES = ("ocn", "moe", "hil")
+TERMINATION_PENALTIES = ("linear", "log")
 
 
 @PreTrainedConfig.register_subclass("ocn")
@@ -75,6 +76,12 @@ class OCNConfig(SequenceConfig):
     # where the new controller may then pick another). A cost per termination (option-critic's
     # "deliberation cost") keeps only the terminations that the actions pay for: the subtask ends.
     termination_cost: float = 0.0
+    # What the termination cost charges per frame: "linear", e_t itself; "log", -log(1 - e_t), the NLL
+    # of "go on" under a Bernoulli(e_t). The linear cost's gradient in the termination logit,
+    # e_t (1 - e_t), vanishes where a termination is confident, so it hardly moves the confident
+    # mid-subtask terminations that fail an option run alone; the log cost's, e_t, does not. Either way
+    # a termination is kept where restarting raises the action likelihood by more than the cost.
+    termination_penalty: str = "linear"
     # Added to the loss: this weight times KL(u || uniform), u being the batch's mean p^c over its
     # real frames (0: the paper's loss). Under the NLL alone, the option that first fits a little
     # better is picked more, so it trains more and is picked more still: within a few hundred
@@ -122,6 +129,7 @@ class OCNConfig(SequenceConfig):
             raise ValueError(
                 f"forced_restart_rate is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}."
             )
+        check_choice("termination_penalty", self.termination_penalty, TERMINATION_PENALTIES)
         if self.termination_cost < 0:
             raise ValueError(f"termination_cost must be >= 0, got {self.termination_cost}.")
         if self.termination_cost and self.hierarchy != "ocn":

@@ -37,6 +37,14 @@ class StepReport:
     decided: Tensor | None = None
 
 
+def termination_penalty(config: OCNConfig, end: Tensor) -> Tensor:
+    """What the termination cost charges for each e_t (`OCNConfig.termination_penalty`). The log form
+    is clamped below e_t = 1, which only the forced first step reaches (and the cost leaves out)."""
+    if config.termination_penalty == "linear":
+        return end
+    return -torch.log1p(-end.clamp_max(1.0 - 1e-6))
+
+
 def usage_imbalance(p_c: Tensor, mask: Tensor) -> Tensor:
     """KL(u || uniform) of the options' share u = the mean of p^c [T, B, N] over real frames mask [B, T]:
     0 when every option takes as many frames as the others, log N when one takes them all."""
@@ -120,8 +128,10 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
         mask, state, action = training_windows(self.config, batch)
         out = self._unroll(state, batch["task"])
-        loss, stats = window_nll(self._action_log_prob(out, action), mask, reduction, {},
-                                 {"mean_end": (self.config.termination_cost, out.end)})
+        penalties = {}
+        if self.config.termination_cost:
+            penalties["termination_penalty"] = (self.config.termination_cost, termination_penalty(self.config, out.end))
+        loss, stats = window_nll(self._action_log_prob(out, action), mask, reduction, {"mean_end": out.end}, penalties)
         imbalance = usage_imbalance(out.p_c, mask)
         stats["usage_imbalance"] = imbalance.item()
         if self.config.usage_balance:
