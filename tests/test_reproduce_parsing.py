@@ -103,3 +103,20 @@ def test_checks_compare_nmi_with_the_labelled_baselines_and_list_every_baseline_
     wins = {(w["baseline"], w["metric"]) for w in baseline_wins(summary)}
     assert wins == {("HIL", "f1_tol0"), ("HIL", "f1_tol1"), ("HIL", "align_acc"), ("HIL", "nmi")}
     assert must_show(_summary(OMPN=None)) == [] and baseline_wins(_summary(OMPN=None)) == []
+
+
+def test_balanced_ocn_family_runs_get_folders_of_their_own(tmp_path):
+    import argparse
+
+    from tools.reproduce.parsing import METHODS, method_settings, run_dir
+
+    methods = {method.key: method for method in METHODS}
+    paper, balanced = (argparse.Namespace(workdir=tmp_path, usage_balance=w, steps=2, batch_size=8, window_size=24,
+                                          num_workers=0, threads=1, controller_lr_scale=1.0, eval_every=1)
+                       for w in (0.0, 1.0))
+    assert run_dir(paper, methods["hil"], 1) == tmp_path / "parsing_s1" / "hil" / "seed1"
+    assert run_dir(balanced, methods["hil"], 1) == tmp_path / "parsing_s1" / "hil_usage_balance1.0" / "seed1"
+    assert run_dir(balanced, methods["ompn"], 1) == tmp_path / "parsing_s1" / "ompn" / "seed1"
+    assert method_settings(balanced, methods["ocn"])[1]["usage_balance"] == 1.0
+    assert "usage_balance" not in method_settings(paper, methods["ocn"])[1]
+    assert "usage_balance" not in method_settings(balanced, methods["compile"])[1]

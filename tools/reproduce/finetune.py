@@ -393,15 +393,20 @@ def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Metho
     """The options of a finetuning study's PPO runs: seeds, budget, envs, rewards and methods."""
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--first-seed", type=int, default=1, help="seeds run from this one on")
-    parser.add_argument("--usage-balance", type=float, default=0.0,
-                        help="weight of the option-usage balance term in the behaviour cloning of the OCN-family "
-                             "clones (OCN, MoE, HIL; OCNConfig.usage_balance); 0 is the paper's loss")
     parser.add_argument("--frames", type=int, default=frames, help="env frames per PPO run (the budget)")
     parser.add_argument("--envs", type=int, default=64, help="envs stepped together in PPO")
     parser.add_argument("--rewards", type=lambda s: s.split(","), default=list(REWARDS),
                         help="comma-separated: sparse,dense")
     parser.add_argument("--methods", type=lambda s: s.split(","), default=",".join(m.key for m in methods),
                         help="comma-separated: " + ",".join(m.key for m in methods))
+    add_usage_balance_argument(parser)
+
+
+def add_usage_balance_argument(parser: argparse.ArgumentParser) -> None:
+    """`--usage-balance` of the studies that clone the OCN family (`balance_override`)."""
+    parser.add_argument("--usage-balance", type=float, default=0.0,
+                        help="weight of the option-usage balance term in the behaviour cloning of the OCN-family "
+                             "clones (OCN, MoE, HIL; OCNConfig.usage_balance); 0 is the paper's loss")
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:

@@ -93,10 +93,11 @@ def method_settings(args: argparse.Namespace, method: Method) -> tuple[TrainSett
     return replace(settings, save_every=args.eval_every), overrides
 
 
-def run_dir(workdir: Path, method: Method, seed: int) -> Path:
+def run_dir(args: argparse.Namespace, method: Method, seed: int) -> Path:
     """Where one method's seed trains and keeps its scores: this study's own, since imitation-s1 and
-    s1 keep too few checkpoints to draw a curve from."""
-    return workdir / "parsing_s1" / method.key / f"seed{seed}"
+    s1 keep too few checkpoints to draw a curve from (OCN-family runs under the usage balance apart)."""
+    suffix = finetune.balance_suffix(args) if method.policy_type == "ocn" else ""
+    return args.workdir / "parsing_s1" / f"{method.key}{suffix}" / f"seed{seed}"
 
 
 def scored_steps(steps: int, every: int) -> list[int]:
@@ -164,7 +165,7 @@ def hyperparameters(method: Method, checkpoint: Path, settings: TrainSettings) -
 
 def run_one(args: argparse.Namespace, data: Path, episodes: EpisodeArrays, method: Method, seed: int) -> dict[str, Any]:
     """Train (unless done) one method and seed, then score every checkpoint (unless done)."""
-    folder = run_dir(args.workdir, method, seed)
+    folder = run_dir(args, method, seed)
     settings, overrides = method_settings(args, method)
     trained = train_policy(settings, data, imitation.S1_REPO_ID, folder, seed, overrides)
     scored = score_run(folder, scored_steps(settings.steps, settings.save_every), episodes, args.threads)
@@ -402,5 +403,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         help="lerobot-train steps between saved checkpoints (its --save_freq); each is scored, and "
                              "the last step always is")
     imitation.add_training_arguments(parser)
+    finetune.add_usage_balance_argument(parser)
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of parsing_s1.{json,md,png}")
     parser.set_defaults(func=parsing_s1)
