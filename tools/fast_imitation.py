@@ -50,10 +50,10 @@ def parse_overrides(pairs: list[str]) -> dict[str, Any]:
 
 def train(args: argparse.Namespace) -> dict[str, Any]:
     """Train one seed, scoring the parse every `eval_every` steps; returns (and writes) the curve."""
+    from lerobot.configs import PreTrainedConfig
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
     from lerobot.policies.factory import make_policy, make_pre_post_processors
     from ocn_data.episodes_table import load_episodes, split_episodes
-    from lerobot.configs import PreTrainedConfig
     from policies.ocn import OCNConfig, OCNPolicy
     from tools.episode_parsing import parse_statistics, score_segmentations, segment_episodes
 

@@ -99,9 +99,11 @@ def balance_override(args: argparse.Namespace) -> dict[str, float]:
     return {"usage_balance": args.usage_balance} if args.usage_balance else {}
 
 
-def balance_suffix(args: argparse.Namespace) -> str:
-    """Folder-name suffix of runs over balanced clones: they live beside the paper-loss ones."""
-    return f"_usage_balance{args.usage_balance}" if args.usage_balance else ""
+def balance_suffix(args: argparse.Namespace, method: Method) -> str:
+    """Folder-name suffix of an OCN-family method's runs over balanced clones, named as the imitation
+    study names its folders, so that they live beside the paper-loss ones (others: none)."""
+    ocn_family = method.policy_type == "ocn" and method.overrides is not None
+    return imitation.settings_suffix(balance_override(args)) if ocn_family else ""
 
 
 def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
@@ -118,8 +120,7 @@ def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int)
         if setting.name == "s1" and method.name == "OCN":
             run_dir = imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed, balance_override(args))
         else:
-            suffix = balance_suffix(args) if method.policy_type == "ocn" else ""
-            run_dir = args.workdir / "clone" / folder / f"{method.key}{suffix}" / f"seed{seed}"
+            run_dir = args.workdir / "clone" / folder / f"{method.key}{balance_suffix(args, method)}" / f"seed{seed}"
         runs.append(train_policy(settings, data, f"local/{folder}", run_dir, seed, overrides))
     return runs
 
@@ -144,8 +145,7 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
     """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve.
     A finished run is made again when a clone it used was trained on since (`clones.json` keeps the
     clones' training commands; runs from before it existed are reused as they are)."""
-    suffix = balance_suffix(args) if method.policy_type == "ocn" and method.overrides is not None else ""
-    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}{suffix}" / f"seed{seed}"
+    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}{balance_suffix(args, method)}" / f"seed{seed}"
     command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
     shown = " ".join(Path(word).name if word.startswith("/") else word for word in command)
     summary_path, command_path = out / "run" / "finetune.json", out / "finetune_command.txt"

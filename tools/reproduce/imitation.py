@@ -80,11 +80,15 @@ def study_overrides(args: argparse.Namespace) -> dict[str, str]:
     return {key: getattr(args, key) for key, default in STUDY_DEFAULTS.items() if getattr(args, key) != default}
 
 
+def settings_suffix(overrides: dict[str, Any] | None) -> str:
+    """Folder-name suffix naming non-default study settings (`_cosine`, `_usage_balance1.0`)."""
+    return "".join(f"_{value}" if isinstance(value, str) else f"_{key}{value}" for key, value in (overrides or {}).items())
+
+
 def run_dir(workdir: Path, variant: Variant, seed: int, overrides: dict[str, str] | None = None) -> Path:
     """A run's folder; runs under non-default study settings (`study_overrides`) get their own, named
     after them (`3options_T10_cosine`), so that every kind lives in one workdir."""
-    suffix = "".join(f"_{value}" if isinstance(value, str) else f"_{key}{value}" for key, value in (overrides or {}).items())
-    return workdir / "imitation_s1" / f"{_slug(variant.name)}{suffix}" / f"seed{seed}"
+    return workdir / "imitation_s1" / f"{_slug(variant.name)}{settings_suffix(overrides)}" / f"seed{seed}"
 
 
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:

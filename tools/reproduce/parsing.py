@@ -96,8 +96,7 @@ def method_settings(args: argparse.Namespace, method: Method) -> tuple[TrainSett
 def run_dir(args: argparse.Namespace, method: Method, seed: int) -> Path:
     """Where one method's seed trains and keeps its scores: this study's own, since imitation-s1 and
     s1 keep too few checkpoints to draw a curve from (OCN-family runs under the usage balance apart)."""
-    suffix = finetune.balance_suffix(args) if method.policy_type == "ocn" else ""
-    return args.workdir / "parsing_s1" / f"{method.key}{suffix}" / f"seed{seed}"
+    return args.workdir / "parsing_s1" / f"{method.key}{finetune.balance_suffix(args, method)}" / f"seed{seed}"
 
 
 def scored_steps(steps: int, every: int) -> list[int]:
