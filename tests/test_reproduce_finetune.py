@@ -71,6 +71,18 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
     assert (tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0" / "seed1" / "run" / "finetune.json").exists()
     assert json.loads(step.read_text())["step"] == 4  # the paper-loss clone is left as it was
 
+    # --settle-steps settles the OCN clone as imitation-s1 does (into the same run's settle folder), and
+    # the finetuning over the settled options gets a folder of its own.
+    settled = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--usage-balance", "1.0",
+                         "--settle-steps", "2")
+    assert settled.returncode == 0, settled.stderr[-2000:]
+    assert "--policy.termination_penalty=log" in (clone_dir / "settle" / "train_command.txt").read_text()
+    out = tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_settle_steps2_settle_cost0.1" / "seed1"
+    assert (out / "run" / "finetune.json").exists()
+    result = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())
+    assert " && " in result["runs"][0]["clone_commands"][0]
+    assert "OCN's: then a settling phase of 2 steps" in (tmp_path / "results" / "finetune_s1.md").read_text()
+
 
 def test_unknown_method_is_refused(tmp_path):
     done = _reproduce(tmp_path, "--methods", "ocn,options")

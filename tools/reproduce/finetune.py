@@ -33,7 +33,8 @@ from tools.bench import RESULTS
 from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE
 from tools.reproduce import imitation
 from tools.reproduce.report import checks_table, machine_words, over_seeds, provenance, write_result_files
-from tools.reproduce.runs import TrainedRun, TrainSettings, record_dataset, same_training, train_policy
+from tools.reproduce.runs import (TrainedRun, TrainSettings, record_dataset, same_training, settle_policy,
+                                  train_policy)
 
 GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
 FINAL_ROWS = 3  # PPO iterations averaged for the value "at the budget" (one iteration is noisy)
@@ -106,11 +107,20 @@ def balance_suffix(args: argparse.Namespace, method: Method) -> str:
     return imitation.settings_suffix(balance_override(args)) if ocn_family else ""
 
 
+def clone_suffix(args: argparse.Namespace, method: Method) -> str:
+    """Folder-name suffix of a method's finetuning runs: the balance of its clones and, for OCN, their
+    settling phase, so that runs over differently made clones live side by side."""
+    settled = method.key == "ocn" and imitation.settling(args) is not None
+    settle = {"settle_steps": args.settle_steps, "settle_cost": args.settle_termination_cost} if settled else {}
+    return balance_suffix(args, method) + imitation.settings_suffix(settle)
+
+
 def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
     """The method's behaviour-cloned checkpoints for one seed, one per demonstration set.
 
     S1's OCN is the imitation study's main variant at the same usage balance (`imitation-s1
-    --usage-balance W`), so both reproductions share those runs.
+    --usage-balance W`), so both reproductions share those runs, and their settling phase too when
+    `--settle-steps` asks for one (OCN only: MoE and HIL have no terminations to settle).
     """
     settings, overrides = clone_settings(args, setting, method)
     runs = []
@@ -121,7 +131,10 @@ def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int)
             run_dir = imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed, balance_override(args))
         else:
             run_dir = args.workdir / "clone" / folder / f"{method.key}{balance_suffix(args, method)}" / f"seed{seed}"
-        runs.append(train_policy(settings, data, f"local/{folder}", run_dir, seed, overrides))
+        run = train_policy(settings, data, f"local/{folder}", run_dir, seed, overrides)
+        if method.key == "ocn" and imitation.settling(args):
+            run = settle_policy(settings, run, data, f"local/{folder}", run_dir, seed, imitation.settling(args))
+        runs.append(run)
     return runs
 
 
@@ -145,7 +158,7 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
     """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve.
     A finished run is made again when a clone it used was trained on since (`clones.json` keeps the
     clones' training commands; runs from before it existed are reused as they are)."""
-    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}{balance_suffix(args, method)}" / f"seed{seed}"
+    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}{clone_suffix(args, method)}" / f"seed{seed}"
     command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
     shown = " ".join(Path(word).name if word.startswith("/") else word for word in command)
     summary_path, command_path = out / "run" / "finetune.json", out / "finetune_command.txt"
@@ -300,7 +313,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
         f"{setting.n_options} options per cloned model{skills_note}, cloned by "
-        f"`lerobot-train`; PPO through `ocn-finetune`, "
+        f"`lerobot-train` (OCN-family clones' option-usage balance {result['settings'].get('usage_balance', 0.0)}; "
+        f"OCN's: {imitation.settling_words(result['settings'])}); PPO through `ocn-finetune`, "
         f"{result['settings']['frames']} env frames per run, {result['settings']['envs']} envs. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
         f"seeds. Runs finished: {result['runs_finished']} of {result['runs_planned']}; wall time of this "
@@ -418,5 +432,6 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         runnable = tuple(method for method in METHODS if method.pools or len(setting.demos) == 1)
         add_finetune_arguments(parser, runnable, 300_000)
         imitation.add_training_arguments(parser)
+        imitation.add_settling_arguments(parser, 0, "OCN's clones (as imitation-s1's, which settles by default)")
         parser.add_argument("--results", type=Path, default=RESULTS)
         parser.set_defaults(func=reproduce)

@@ -2,8 +2,10 @@
 
 Records (or reuses) the S1 demonstrations ({AC, CD, DA}, 6000 each), trains OCN with `lerobot-train`
 on the train split for each seed and each ablation (2, 3 and 6 options; temperature 1 against 10),
-scores every run with `ocn-eval` on the validation split and writes `results/imitation_s1.{json,md}`
-with plots. Finished runs are reused, so an interrupted reproduction continues where it stopped.
+settles each run (a second `lerobot-train` run from its last checkpoint under a termination cost,
+`runs.Settling`), scores every run before and after settling with `ocn-eval` on the validation split
+and writes `results/imitation_s1.{json,md}` with plots. Finished runs are reused, so an interrupted
+reproduction continues where it stopped.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from policies.sequence import CRAFT_ENCODERS, LR_SCHEDULES, SequenceConfig
 from tools.bench import RESULTS
 
 from tools.reproduce.report import checks_table, machine_words, provenance, train_time_words, write_result_files
-from tools.reproduce.runs import TrainSettings, evaluate_run, record_dataset, train_policy
+from tools.reproduce.runs import Settling, TrainSettings, evaluate_run, record_dataset, settle_policy, train_policy
 
 S1_TASKS = "AC,CD,DA"
 S1_REPO_ID = "local/craft_s1"
@@ -37,7 +39,11 @@ STUDY_USAGE_BALANCE = 1.0
 # The settings that decide a run's scores: runs in a results file are kept by a later invocation only
 # when these match (`earlier_runs`).
 STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
-              "lr_schedule", "obs_encoder", "usage_balance", "rollouts")
+              "lr_schedule", "obs_encoder", "usage_balance", "rollouts", "settle_steps", "settle_termination_cost")
+# What a results file written before the study settled its runs was made with.
+UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0}
+# The settling phase this study ends every run with unless told otherwise (`runs.Settling`).
+STUDY_SETTLING = Settling(steps=1000, termination_cost=0.1)
 METRICS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "diagonal_mean", "off_diagonal_max", "mean_success_rate")
 
 
@@ -91,12 +97,31 @@ def run_dir(workdir: Path, variant: Variant, seed: int, overrides: dict[str, str
     return workdir / "imitation_s1" / f"{_slug(variant.name)}{settings_suffix(overrides)}" / f"seed{seed}"
 
 
+def settling(args: argparse.Namespace) -> Settling | None:
+    """The settling phase of this invocation's runs (None: `--settle-steps 0`)."""
+    return Settling(args.settle_steps, args.settle_termination_cost) if args.settle_steps else None
+
+
+def scored_dir(folder: Path, args: argparse.Namespace) -> Path:
+    """Where a run's scored model lives: the settled one when the study settles."""
+    return folder / "settle" if settling(args) else folder
+
+
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:
-    """Train (unless done before) and evaluate one seed of one variant; returns its record."""
+    """Train (unless done before) and evaluate one seed of one variant; returns its record. With a
+    settling phase, the run before settling is scored too and its scores kept under `before_settling`."""
     study = study_overrides(args)
     folder = run_dir(args.workdir, variant, seed, study)
-    trained = train_policy(train_settings(args), data, S1_REPO_ID, folder, seed, {**variant.overrides, **study})
-    return evaluate_run(folder, trained, data, S1_REPO_ID, args.rollouts, {"variant": variant.name, "seed": seed})
+    labels = {"variant": variant.name, "seed": seed}
+    settings = train_settings(args)
+    trained = train_policy(settings, data, S1_REPO_ID, folder, seed, {**variant.overrides, **study})
+    record = evaluate_run(folder, trained, data, S1_REPO_ID, args.rollouts, labels)
+    if settling(args) is None:
+        return record
+    settled = settle_policy(settings, trained, data, S1_REPO_ID, folder, seed, settling(args))
+    before = {key: record["scores"][key] for key in (*METRICS, "diagonal", "success_rate")}
+    return {**evaluate_run(scored_dir(folder, args), settled, data, S1_REPO_ID, args.rollouts, labels),
+            "before_settling": before}
 
 
 def summarise(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -165,6 +190,15 @@ def plot(records: list[dict[str, Any]], path: Path) -> None:
     plt.close(fig)
 
 
+def settling_words(settings: dict[str, Any]) -> str:
+    """The settling phase of a results file's runs, in words."""
+    steps = settings.get("settle_steps", UNSETTLED["settle_steps"])
+    if not steps:
+        return "no settling phase"
+    return (f"then a settling phase of {steps} steps from the last checkpoint at log termination cost "
+            f"{settings['settle_termination_cost']}")
+
+
 def markdown(result: dict[str, Any]) -> str:
     """The human-readable results file."""
     lines = [
@@ -175,7 +209,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"{result['settings']['batch_size']} windows (episodes), {result['settings']['lr_schedule']} learning "
         f"rate, controller learning-rate scale {result['settings']['controller_lr_scale']}, option-usage balance "
         f"{result['settings'].get('usage_balance', STUDY_DEFAULTS['usage_balance'])}, observation encoder "
-        f"`{result['settings']['obs_encoder']}`; scores: `ocn-eval` "
+        f"`{result['settings']['obs_encoder']}`; {settling_words(result['settings'])} (a run's train time "
+        "includes it); scores: `ocn-eval` "
         f"on the validation split "
         f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Runs finished: "
         f"{result['runs_finished']} of {result['runs_planned']}; wall time of this invocation "
@@ -197,13 +232,22 @@ def markdown(result: dict[str, Any]) -> str:
     for r in result["runs"]:
         s = r["scores"]
         success = ", ".join(f"{v:.2f}" for v in s["success_rate"].values())
+        before = r.get("before_settling")
+        if before:
+            lines.append(
+                f"| {r['variant']}, before settling | {r['seed']} | {before['f1_tol0']:.3f} | "
+                f"{before['f1_tol1']:.3f} | {before['align_acc']:.3f} | {before['nmi']:.3f} | "
+                f"{', '.join(f'{d:.2f}' for d in before['diagonal'])} | "
+                f"{', '.join(f'{v:.2f}' for v in before['success_rate'].values())} | | |")
         lines.append(
             f"| {r['variant']} | {r['seed']} | {s['f1_tol0']:.3f} | {s['f1_tol1']:.3f} | {s['align_acc']:.3f} | "
             f"{s['nmi']:.3f} | {', '.join(f'{d:.2f}' for d in s['diagonal'])} | {success} | {train_time_words(r)} | "
             f"{'; '.join(r.get('trained_on') or ['not recorded'])} |"
         )
-    lines += ["", "Plots: `imitation_s1.png` (every metric, seeds as dots), `imitation_s1_option_table.png` "
-              "(option x subtask success of the first main-variant seed).", "", "## Invocations", "",
+    table_seed = result.get("option_table_seed")
+    table_words = ("" if table_seed is None else f", `imitation_s1_option_table.png` (option x subtask success of "
+                   f"the main variant's seed {table_seed}, the first whose run is in this workdir)")
+    lines += ["", f"Plots: `imitation_s1.png` (every metric, seeds as dots){table_words}.", "", "## Invocations", "",
               "| command | date | machine | runs it made |", "|---|---|---|---|"]
     for made_by, runs in invocations(result["runs"]):
         lines.append(f"| `{made_by['command']}` | {made_by['date']} | {machine_words(made_by['machine'])} | "
@@ -247,7 +291,7 @@ def earlier_runs(args: argparse.Namespace, planned: list[tuple[Variant, int]]) -
         return []
     earlier = json.loads(path.read_text())
     # A file written before a setting existed was made at the policy's default for it.
-    settings = {**STUDY_DEFAULTS, **earlier["settings"]}
+    settings = {**STUDY_DEFAULTS, **UNSETTLED, **earlier["settings"]}
     differing = [f"{key} {settings.get(key)!r} there, {getattr(args, key)!r} here" for key in STUDY_KEYS
                  if settings.get(key) != getattr(args, key)]
     if differing:
@@ -296,11 +340,18 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
         "runs": records,
         "wall_s": round(wall_s, 1),
     }
+    main_seeds = [r["seed"] for r in records if r["variant"] == VARIANTS[0].name]
+    tables = [(seed, scored_dir(run_dir(args.workdir, VARIANTS[0], seed, study_overrides(args)), args) / "eval.png")
+              for seed in main_seeds]
+    table_seed, table = next(((seed, png) for seed, png in tables if png.exists()), (None, None))
+    result["option_table_seed"] = table_seed
     stem = write_result_files(args.results, "imitation_s1", result, markdown(result))
     plot(records, stem.with_suffix(".png"))
-    first = run_dir(args.workdir, VARIANTS[0], 1, study_overrides(args)) / "eval.png"
-    if first.exists():
-        (args.results / "imitation_s1_option_table.png").write_bytes(first.read_bytes())
+    option_table = args.results / "imitation_s1_option_table.png"
+    if table is not None:
+        option_table.write_bytes(table.read_bytes())
+    else:
+        option_table.unlink(missing_ok=True)  # rather than leave one of another study's runs
     return result
 
 
@@ -324,9 +375,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                          "observation encoders)")
     s1.add_argument("--usage-balance", type=float, default=STUDY_USAGE_BALANCE,
                     help="weight of the option-usage balance term (OCNConfig.usage_balance; 0 is the paper's loss)")
+    add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
     s1.set_defaults(func=imitation_s1)
+
+
+def add_settling_arguments(parser: argparse.ArgumentParser, steps: int, which: str) -> None:
+    """`--settle-steps` and `--settle-termination-cost` of the studies that settle OCN runs (`settling`)."""
+    parser.add_argument("--settle-steps", type=int, default=steps,
+                        help=f"lerobot-train steps of the settling phase of {which}: a second run from its last "
+                             "checkpoint under the log termination cost (README: the settling phase); 0 skips it")
+    parser.add_argument("--settle-termination-cost", type=float, default=STUDY_SETTLING.termination_cost,
+                        help="--policy.termination_cost of the settling phase (with --policy.termination_penalty=log)")
 
 
 def add_training_arguments(

@@ -9,7 +9,7 @@ import shlex
 import shutil
 import subprocess
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -94,14 +94,17 @@ class TrainedRun:
 
 
 def train_command(
-    settings: TrainSettings, data: Path, repo_id: str, out: Path, seed: int, overrides: dict[str, Any]
+    settings: TrainSettings, data: Path, repo_id: str, out: Path, seed: int, overrides: dict[str, Any],
+    init: Path | None = None,
 ) -> list[str]:
-    """The `lerobot-train` call of one run on the dataset's train split."""
+    """The `lerobot-train` call of one run on the dataset's train split: a fresh policy of the
+    settings' type, or the pretrained_model `init` trained on (its config, then `overrides`)."""
     from ocn_data.episodes_table import split_episodes
 
     train = [int(episode) for episode in split_episodes(data, "train")]
+    policy = f"--policy.path={init}" if init is not None else f"--policy.type={settings.policy_type}"
     command = [
-        console_script("lerobot-train"), f"--policy.type={settings.policy_type}", f"--dataset.repo_id={repo_id}",
+        console_script("lerobot-train"), policy, f"--dataset.repo_id={repo_id}",
         f"--dataset.root={data}", split_argument(train, out), "--policy.device=cpu", "--policy.push_to_hub=false",
         "--wandb.enable=false", "--env_eval_freq=0", f"--steps={settings.steps}", f"--batch_size={settings.batch_size}",
         f"--num_workers={settings.num_workers}", f"--save_freq={min(settings.steps, settings.save_every)}",
@@ -125,15 +128,43 @@ def split_argument(train: list[int], out: Path) -> str:
 
 
 def train_policy(
-    settings: TrainSettings, data: Path, repo_id: str, run_dir: Path, seed: int, overrides: dict[str, Any]
+    settings: TrainSettings, data: Path, repo_id: str, run_dir: Path, seed: int, overrides: dict[str, Any],
+    init: Path | None = None,
 ) -> TrainedRun:
-    """Train one run into `run_dir/train` (or finish or reuse it) and return its last checkpoint."""
-    command = train_command(settings, data, repo_id, run_dir / "train", seed, overrides)
-    shown = " ".join(command[:4] + ["--dataset.episodes=[<train split>]"] + command[5:])
+    """Train one run into `run_dir/train` (or finish or reuse it) and return its last checkpoint;
+    `init`: a pretrained_model to train on instead of a fresh policy."""
+    command = train_command(settings, data, repo_id, run_dir / "train", seed, overrides, init)
+    shown = " ".join(["lerobot-train", *command[1:4], "--dataset.episodes=[<train split>]", *command[5:]])
     check_reusable(run_dir, shown)
     wall = train(settings, command, shown, run_dir)
     return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall, trained_on(run_dir),
                       timed_from_step(run_dir))
+
+
+@dataclass
+class Settling:
+    """A second `lerobot-train` run that continues an OCN run for `steps` steps under the log
+    termination cost (`--policy.termination_cost`, `--policy.termination_penalty=log`): once the options
+    have split the subtasks, it removes their terminations inside a subtask
+    (results/imitation_s1_termination_penalty). A cost from step 0 instead keeps them from splitting."""
+
+    steps: int
+    termination_cost: float
+
+    def overrides(self) -> dict[str, Any]:
+        return {"termination_cost": self.termination_cost, "termination_penalty": "log"}
+
+
+def settle_policy(settings: TrainSettings, trained: TrainedRun, data: Path, repo_id: str, run_dir: Path, seed: int,
+                  settling: Settling) -> TrainedRun:
+    """Settle the finished run `trained` into `run_dir/settle` (or reuse it); the result's command
+    chains both trainings and its wall time adds them up."""
+    settled = train_policy(replace(settings, steps=settling.steps), data, repo_id, run_dir / "settle", seed,
+                           settling.overrides(), init=trained.checkpoint)
+    walls = (trained.train_wall_s, settled.train_wall_s)
+    return TrainedRun(settled.checkpoint, f"{trained.command} && {settled.command}",
+                      None if None in walls else round(sum(walls), 1),
+                      list(dict.fromkeys(trained.trained_on + settled.trained_on)), trained.timed_from_step)
 
 
 def machine_name() -> str:
@@ -266,8 +297,8 @@ def same_training(before: str, command: str) -> bool:
 
 def _settings(command: str, *also_ignored: str) -> list[str]:
     """A training command's arguments in any order, without what does not change the trained model:
-    its paths (program, data root, output dir), which may move, and how often it logs and saves."""
-    ignored = ("--dataset.root=", "--output_dir=", "--save_freq=", "--log_freq=", *also_ignored)
+    its paths (program, data root, output dir, the checkpoint it starts from), which may move, and how often it logs and saves."""
+    ignored = ("--dataset.root=", "--output_dir=", "--policy.path=", "--save_freq=", "--log_freq=", *also_ignored)
     return sorted(word for word in command.split()[1:] if not word.startswith(ignored))
 
 
