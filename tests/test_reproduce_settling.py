@@ -60,3 +60,15 @@ def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path
     assert not [line for line in again.stdout.splitlines() if line.startswith(("training ", "resuming ", "rescoring "))]
     unsettled = _reproduce(tmp_path, "--settle-steps", "0")
     assert unsettled.returncode != 0 and "settle_steps 2 there, 0 here" in unsettled.stderr
+
+    # A first run extended to more steps is settled again, from its new last checkpoint.
+    longer = _reproduce(tmp_path, "--steps", "4", "--settle-steps", "2", "--settle-termination-cost", "0.3",
+                        "--results", str(tmp_path / "results_4"))
+    assert longer.returncode == 0, longer.stderr[-2000:]
+    assert "settling" in longer.stdout and "its run was trained on since" in longer.stdout
+    timing = json.loads((run / "settle" / "train_wall_s.json").read_text())
+    assert [invocation["from_step"] for invocation in timing["invocations"]] == [0]
+    assert "--steps=4" in (run / "settle" / "settled_from.txt").read_text()
+    moved = max(float((_weights(settled / "checkpoints" / "last" / "pretrained_model")[k] - after[k]).abs().max())
+                for k in after)
+    assert moved > 0

@@ -158,8 +158,16 @@ class Settling:
 def settle_policy(settings: TrainSettings, trained: TrainedRun, data: Path, repo_id: str, run_dir: Path, seed: int,
                   settling: Settling) -> TrainedRun:
     """Settle the finished run `trained` into `run_dir/settle` (or reuse it); the result's command
-    chains both trainings and its wall time adds them up."""
-    settled = train_policy(replace(settings, steps=settling.steps), data, repo_id, run_dir / "settle", seed,
+    chains both trainings and its wall time adds them up. A settling run made from the first run before
+    it was trained on (more `--steps`) starts over: `settled_from.txt` keeps the command it started from."""
+    folder = run_dir / "settle"
+    origin = folder / "settled_from.txt"
+    if origin.exists() and not same_training(origin.read_text().strip(), trained.command):
+        print(f"settling {run_dir} again: its run was trained on since", flush=True)
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    origin.write_text(trained.command + "\n")
+    settled = train_policy(replace(settings, steps=settling.steps), data, repo_id, folder, seed,
                            settling.overrides(), init=trained.checkpoint)
     walls = (trained.train_wall_s, settled.train_wall_s)
     return TrainedRun(settled.checkpoint, f"{trained.command} && {settled.command}",
