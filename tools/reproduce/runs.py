@@ -146,7 +146,8 @@ class Settling:
     """A second `lerobot-train` run that continues an OCN run for `steps` steps under the log
     termination cost (`--policy.termination_cost`, `--policy.termination_penalty=log`): once the options
     have split the subtasks, it removes their terminations inside a subtask
-    (results/imitation_s1_termination_penalty). A cost from step 0 instead keeps them from splitting."""
+    (results/imitation_s1_termination_penalty). A cost from step 0 kept them from splitting in the
+    one trial made (README, the settling phase)."""
 
     steps: int
     termination_cost: float
