@@ -33,7 +33,7 @@ from tools.bench import RESULTS
 from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE
 from tools.reproduce import imitation
 from tools.reproduce.report import checks_table, machine_words, over_seeds, provenance, write_result_files
-from tools.reproduce.runs import (TrainedRun, TrainSettings, record_dataset, same_training, settle_policy,
+from tools.reproduce.runs import (Settling, TrainedRun, TrainSettings, record_dataset, same_training, settle_policy,
                                   train_policy)
 
 GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
@@ -107,11 +107,17 @@ def balance_suffix(args: argparse.Namespace, method: Method) -> str:
     return imitation.settings_suffix(balance_override(args)) if ocn_family else ""
 
 
+def clone_settling(args: argparse.Namespace, method: Method) -> Settling | None:
+    """The settling phase of the method's clones: `--settle-steps`' for OCN, none for the others (MoE and
+    HIL have no terminations to settle)."""
+    return imitation.settling(args) if method.key == "ocn" else None
+
+
 def clone_suffix(args: argparse.Namespace, method: Method) -> str:
     """Folder-name suffix of a method's finetuning runs: the balance of its clones and, for OCN, their
     settling phase, so that runs over differently made clones live side by side."""
-    settled = method.key == "ocn" and imitation.settling(args) is not None
-    settle = {"settle_steps": args.settle_steps, "settle_cost": args.settle_termination_cost} if settled else {}
+    settling = clone_settling(args, method)
+    settle = {} if settling is None else {"settle_steps": settling.steps, "settle_cost": settling.termination_cost}
     return balance_suffix(args, method) + imitation.settings_suffix(settle)
 
 
@@ -132,8 +138,9 @@ def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int)
         else:
             run_dir = args.workdir / "clone" / folder / f"{method.key}{balance_suffix(args, method)}" / f"seed{seed}"
         run = train_policy(settings, data, f"local/{folder}", run_dir, seed, overrides)
-        if method.key == "ocn" and imitation.settling(args):
-            run = settle_policy(settings, run, data, f"local/{folder}", run_dir, seed, imitation.settling(args))
+        settling = clone_settling(args, method)
+        if settling is not None:
+            run = settle_policy(settings, run, data, f"local/{folder}", run_dir, seed, settling)
         runs.append(run)
     return runs
 

@@ -24,7 +24,8 @@ from policies.sequence import CRAFT_ENCODERS, LR_SCHEDULES, SequenceConfig
 from tools.bench import RESULTS
 
 from tools.reproduce.report import checks_table, machine_words, provenance, train_time_words, write_result_files
-from tools.reproduce.runs import Settling, TrainSettings, evaluate_run, record_dataset, settle_policy, train_policy
+from tools.reproduce.runs import (Settling, TrainSettings, evaluate_run, record_dataset, settle_dir, settle_policy,
+                                  train_policy)
 
 S1_TASKS = "AC,CD,DA"
 S1_REPO_ID = "local/craft_s1"
@@ -104,7 +105,7 @@ def settling(args: argparse.Namespace) -> Settling | None:
 
 def scored_dir(folder: Path, args: argparse.Namespace) -> Path:
     """Where a run's scored model lives: the settled one when the study settles."""
-    return folder / "settle" if settling(args) else folder
+    return settle_dir(folder) if settling(args) else folder
 
 
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:
@@ -116,9 +117,10 @@ def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -
     settings = train_settings(args)
     trained = train_policy(settings, data, S1_REPO_ID, folder, seed, {**variant.overrides, **study})
     record = evaluate_run(folder, trained, data, S1_REPO_ID, args.rollouts, labels)
-    if settling(args) is None:
+    settle = settling(args)
+    if settle is None:
         return record
-    settled = settle_policy(settings, trained, data, S1_REPO_ID, folder, seed, settling(args))
+    settled = settle_policy(settings, trained, data, S1_REPO_ID, folder, seed, settle)
     before = {key: record["scores"][key] for key in (*METRICS, "diagonal", "success_rate")}
     return {**evaluate_run(scored_dir(folder, args), settled, data, S1_REPO_ID, args.rollouts, labels),
             "before_settling": before}

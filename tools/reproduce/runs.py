@@ -156,12 +156,17 @@ class Settling:
         return {"termination_cost": self.termination_cost, "termination_penalty": "log"}
 
 
+def settle_dir(run_dir: Path) -> Path:
+    """Where a run's settling run lives (`settle_policy`)."""
+    return run_dir / "settle"
+
+
 def settle_policy(settings: TrainSettings, trained: TrainedRun, data: Path, repo_id: str, run_dir: Path, seed: int,
                   settling: Settling) -> TrainedRun:
     """Settle the finished run `trained` into `run_dir/settle` (or reuse it); the result's command
     chains both trainings and its wall time adds them up. A settling run made from the first run before
     it was trained on (more `--steps`) starts over: `settled_from.txt` keeps the command it started from."""
-    folder = run_dir / "settle"
+    folder = settle_dir(run_dir)
     origin = folder / "settled_from.txt"
     if origin.exists() and not same_training(origin.read_text().strip(), trained.command):
         print(f"settling {run_dir} again: its run was trained on since", flush=True)
@@ -306,7 +311,8 @@ def same_training(before: str, command: str) -> bool:
 
 def _settings(command: str, *also_ignored: str) -> list[str]:
     """A training command's arguments in any order, without what does not change the trained model:
-    its paths (program, data root, output dir, the checkpoint it starts from), which may move, and how often it logs and saves."""
+    its paths (program, data root, output dir, the checkpoint it starts from), which may move, and how
+    often it logs and saves."""
     ignored = ("--dataset.root=", "--output_dir=", "--policy.path=", "--save_freq=", "--log_freq=", *also_ignored)
     return sorted(word for word in command.split()[1:] if not word.startswith(ignored))
 
