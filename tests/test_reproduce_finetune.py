@@ -47,8 +47,13 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
     again = _reproduce(tmp_path, "--rewards", "sparse", "--methods", "ocn,moe,flat")
     assert again.returncode == 0 and "finetuning" not in again.stdout and "training" not in again.stdout
 
-    changed = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--frames", "3000")
+    changed = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--envs", "4")
     assert changed.returncode != 0 and "another command" in changed.stderr
+    # Another budget is another folder: both runs stay.
+    budget = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--frames", "3000")
+    assert budget.returncode == 0, budget.stderr[-2000:]
+    finetuned = tmp_path / "work" / "finetune_s1"
+    assert {"ocn_sparse_frames1500", "ocn_sparse_frames3000"} <= {path.name for path in finetuned.iterdir()}
 
     # More clone steps extend the clone from its last checkpoint, and its finetuning is made again.
     longer = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--steps", "4")
@@ -68,7 +73,7 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
     assert balanced.returncode == 0, balanced.stderr[-2000:]
     clone_dir = tmp_path / "work" / "imitation_s1" / "3options_T10_usage_balance1.0" / "seed1"
     assert "--policy.usage_balance=1.0" in (clone_dir / "train_command.txt").read_text()
-    assert (tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0" / "seed1" / "run" / "finetune.json").exists()
+    assert (tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_frames1500" / "seed1" / "run" / "finetune.json").exists()
     assert json.loads(step.read_text())["step"] == 4  # the paper-loss clone is left as it was
 
     # --settle-steps settles the OCN clone as imitation-s1 does (into the same run's settle folder), and
@@ -77,7 +82,7 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
                          "--settle-steps", "2")
     assert settled.returncode == 0, settled.stderr[-2000:]
     assert "--policy.termination_penalty=log" in (clone_dir / "settle" / "train_command.txt").read_text()
-    out = tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_settle_steps2_settle_cost0.1" / "seed1"
+    out = tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_settle_steps2_settle_cost0.1_frames1500" / "seed1"
     assert (out / "run" / "finetune.json").exists()
     result = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())
     assert " && " in result["runs"][0]["clone_commands"][0]

@@ -121,6 +121,12 @@ def clone_suffix(args: argparse.Namespace, method: Method) -> str:
     return balance_suffix(args, method) + imitation.settings_suffix(settle)
 
 
+def budget_suffix(args: argparse.Namespace) -> str:
+    """Folder-name suffix of a finetuning run at a budget other than the study's default
+    (`_frames1500000`), so that runs at several budgets live side by side."""
+    return "" if args.frames == args.default_frames else imitation.settings_suffix({"frames": args.frames})
+
+
 def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
     """The method's behaviour-cloned checkpoints for one seed, one per demonstration set.
 
@@ -165,7 +171,7 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
     """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve.
     A finished run is made again when a clone it used was trained on since (`clones.json` keeps the
     clones' training commands; runs from before it existed are reused as they are)."""
-    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}{clone_suffix(args, method)}" / f"seed{seed}"
+    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}{clone_suffix(args, method)}{budget_suffix(args)}" / f"seed{seed}"
     command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
     shown = " ".join(Path(word).name if word.startswith("/") else word for word in command)
     summary_path, command_path = out / "run" / "finetune.json", out / "finetune_command.txt"
@@ -414,7 +420,10 @@ def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Metho
     """The options of a finetuning study's PPO runs: seeds, budget, envs, rewards and methods."""
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--first-seed", type=int, default=1, help="seeds run from this one on")
-    parser.add_argument("--frames", type=int, default=frames, help="env frames per PPO run (the budget)")
+    parser.add_argument("--frames", type=int, default=frames,
+                        help="env frames per PPO run (the budget); runs at another budget than the default get "
+                             "folders of their own (`ocn_sparse_frames1500000`)")
+    parser.set_defaults(default_frames=frames)
     parser.add_argument("--envs", type=int, default=64, help="envs stepped together in PPO")
     parser.add_argument("--rewards", type=lambda s: s.split(","), default=list(REWARDS),
                         help="comma-separated: sparse,dense")
