@@ -107,6 +107,11 @@ def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_an
         "w/imitation_s1/3options_T10_cosine/seed1")
     assert imitation.run_dir(Path("w"), main, 2, both) == Path("w/imitation_s1/3options_T10_cosine_craft_full_view/seed2")
     assert imitation.run_dir(Path("w"), main, 1, overrides()) == Path("w/imitation_s1/3options_T10_usage_balance1.0/seed1")
+    assert overrides("--optimizer-lr", "0.001") == {"usage_balance": 1.0}
+    faster = overrides("--optimizer-lr", "0.002")
+    assert faster == {"usage_balance": 1.0, "optimizer_lr": 0.002}
+    assert imitation.run_dir(Path("w"), main, 1, faster) == Path(
+        "w/imitation_s1/3options_T10_usage_balance1.0_optimizer_lr0.002/seed1")
 
 
 def test_imitation_runs_can_be_limited_to_chosen_variants():

@@ -33,14 +33,15 @@ S1_REPO_ID = "local/craft_s1"
 # paper's constant lr and OMPN's observation). A run spells one out, and gets its own folder, only
 # when it differs from the default, so runs made before the option existed keep their command.
 STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": SequenceConfig.obs_encoder,
-                  "usage_balance": OCNConfig.usage_balance}
+                  "usage_balance": OCNConfig.usage_balance, "optimizer_lr": SequenceConfig.optimizer_lr}
 # The option-usage balance this study trains with unless told otherwise: without it, whether the
 # options split the subtasks within a run's steps is a matter of the run (README, results).
 STUDY_USAGE_BALANCE = 1.0
 # The settings that decide a run's scores: runs in a results file are kept by a later invocation only
 # when these match (`earlier_runs`).
 STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
-              "lr_schedule", "obs_encoder", "usage_balance", "rollouts", "settle_steps", "settle_termination_cost")
+              "lr_schedule", "obs_encoder", "usage_balance", "optimizer_lr", "rollouts", "settle_steps",
+              "settle_termination_cost")
 # What a results file written before the study settled its runs was made with.
 UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0}
 # The settling phase this study ends every run with unless told otherwise (`runs.Settling`).
@@ -209,7 +210,7 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Training: `lerobot-train`, {result['settings']['steps']} steps of "
         f"{result['settings']['batch_size']} windows (episodes), {result['settings']['lr_schedule']} learning "
-        f"rate, controller learning-rate scale {result['settings']['controller_lr_scale']}, option-usage balance "
+        f"rate {result['settings'].get('optimizer_lr', STUDY_DEFAULTS['optimizer_lr']):g}, controller learning-rate scale {result['settings']['controller_lr_scale']}, option-usage balance "
         f"{result['settings'].get('usage_balance', STUDY_DEFAULTS['usage_balance'])}, observation encoder "
         f"`{result['settings']['obs_encoder']}`; {settling_words(result['settings'])} (a run's train time "
         "includes it); scores: `ocn-eval` "
@@ -372,6 +373,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_training_arguments(s1)
     s1.add_argument("--lr-schedule", choices=LR_SCHEDULES, default=STUDY_DEFAULTS["lr_schedule"],
                     help="lr over each run: the paper's constant, or cosine annealing to 0 (OCNConfig.lr_schedule)")
+    s1.add_argument("--optimizer-lr", type=float, default=STUDY_DEFAULTS["optimizer_lr"],
+                    help="Adam's learning rate of every run (OCNConfig.optimizer_lr; the paper's 1e-3)")
     s1.add_argument("--obs-encoder", choices=CRAFT_ENCODERS, default=STUDY_DEFAULTS["obs_encoder"],
                     help="observation of every run: OMPN's features (the paper's) or the exact map (README, "
                          "observation encoders)")
