@@ -3,12 +3,14 @@ scores the parse with the shared metrics and draws curves."""
 
 import json
 
+import numpy as np
 import pytest
+import torch
 
 from conftest import CRAFT_REPO_ID
 from ocn_data.episodes_table import load_episodes, split_episodes
 from tools.episode_parsing import load_policy, score_segmentations, segment_episodes
-from tools.fast_imitation import main, parse_overrides
+from tools.fast_imitation import episode_batch, main, parse_overrides, split_table
 
 
 def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
@@ -50,3 +52,50 @@ def test_fast_imitation_overrides_are_typed_config_fields():
         parse_overrides(["no_such_field=1"])
     with pytest.raises(SystemExit, match="takes true or false"):
         parse_overrides(["option_memory=maybe"])
+
+
+def test_split_table_names_the_first_step_at_the_nmi_threshold(tmp_path):
+    def curve(name, nmis):
+        path = tmp_path / f"{name}.json"
+        points = [{"step": 500 * (k + 1), "nmi": nmi, "f1_tol1": 0.5, "align_acc": 0.25} for k, nmi in enumerate(nmis)]
+        path.write_text(json.dumps({"curve": points}))
+        return path
+
+    table = split_table([curve("late", [0.1, 0.89, 0.9, 0.95]), curve("never", [0.1, 0.2])], 0.9)
+    rows = table.splitlines()
+    assert rows[0].startswith("| run | first step with NMI >= 0.9 | last step |")
+    assert rows[2] == "| late | 1500 | 2000 | 0.950 | 0.500 | 0.250 |"
+    assert rows[3] == "| never | not within the run | 1000 | 0.200 | 0.500 | 0.250 |"
+
+
+def test_in_memory_batches_train_what_lerobot_train_windows_train(craft_dataset):
+    # The same episodes, once as LeRobot's loader windows them for `lerobot-train` (one window per
+    # sampled frame, clamped at the episode's ends) and once as this loop takes them from memory:
+    # the same loss, so the recipe found here is the one `lerobot-train` trains.
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+    from lerobot.utils.collate import lerobot_collate_fn
+
+    from policies.ocn import OCNConfig
+
+    meta = LeRobotDatasetMetadata(CRAFT_REPO_ID, root=craft_dataset)
+    config = OCNConfig(device="cpu", window_size=30, hidden_size=16, mlp_hidden_size=16, usage_balance=1.0)
+    torch.manual_seed(0)
+    policy = make_policy(config, ds_meta=meta).eval()
+    preprocessor, _ = make_pre_post_processors(config, dataset_stats=meta.stats)
+    train = list(split_episodes(craft_dataset, "train"))
+    windows = LeRobotDataset(CRAFT_REPO_ID, root=craft_dataset, episodes=train,
+                             delta_timestamps=resolve_delta_timestamps(config, meta))
+    frames = [0, 5, len(windows) // 2, len(windows) - 1]  # the first and last frames of episodes among them
+    items = [windows[k] for k in frames]
+    # As lerobot-train collates (this dataset has subtask annotations, LeRobot's language columns).
+    collate = lerobot_collate_fn if meta.has_language_columns else torch.utils.data.default_collate
+    loaded = preprocessor(collate(items))
+    split = load_episodes(craft_dataset, split_episodes(craft_dataset, "train"))
+    rows = np.array([train.index(int(item["episode_index"])) for item in items])
+    with torch.no_grad():
+        from_loader, loader_stats = policy.forward(loaded)
+        from_memory, memory_stats = policy.forward(episode_batch(split, rows))
+    assert loader_stats["frames_used"] == memory_stats["frames_used"] == int(split.lengths[rows].sum())
+    assert from_loader.item() == pytest.approx(from_memory.item(), rel=1e-6)

@@ -48,6 +48,16 @@ def parse_overrides(pairs: list[str]) -> dict[str, Any]:
     return overrides
 
 
+def episode_batch(split: Any, rows: np.ndarray) -> dict[str, Any]:
+    """A training batch of whole episodes (rows of an `ocn_data.episodes_table.EpisodeArrays`), as
+    `policy.forward` takes it, cut after the longest one."""
+    used = int(split.lengths[rows].max())
+    return {OBS_STATE: torch.from_numpy(split.state[rows, :used]).float(),
+            ACTION: torch.from_numpy(split.action[rows, :used]).float(),
+            f"{ACTION}_is_pad": torch.from_numpy(~split.mask[rows, :used]),
+            "task": [split.tasks[i] for i in rows.tolist()]}
+
+
 def train(args: argparse.Namespace) -> dict[str, Any]:
     """Train one seed, scoring the parse every `eval_every` steps; returns (and writes) the curve."""
     from lerobot.configs import PreTrainedConfig
@@ -72,8 +82,6 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
     train_split = load_episodes(args.root, split_episodes(args.root, "train"))
     val_split = load_episodes(args.root, split_episodes(args.root, "val"), max_episodes=args.val_episodes)
-    state, action = torch.from_numpy(train_split.state).float(), torch.from_numpy(train_split.action).float()
-    pad = torch.from_numpy(~train_split.mask)
     lengths = train_split.lengths
     weights = lengths / lengths.sum()
     curve: list[dict[str, Any]] = []
@@ -81,10 +89,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
               | {"seed": args.seed, "batch_size": args.batch_size, "steps": args.steps}, "curve": curve}
     started, frames = time.perf_counter(), 0
     for step in range(1, args.steps + 1):
-        rows = torch.from_numpy(rng.choice(len(lengths), args.batch_size, p=weights))
-        used = int(lengths[rows.numpy()].max())
-        batch = {OBS_STATE: state[rows, :used], ACTION: action[rows, :used], f"{ACTION}_is_pad": pad[rows, :used],
-                 "task": [train_split.tasks[i] for i in rows.tolist()]}
+        batch = episode_batch(train_split, rng.choice(len(lengths), args.batch_size, p=weights))
         policy.train()
         loss, stats = policy.forward(batch)
         optimizer.zero_grad()
@@ -110,8 +115,22 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def split_table(paths: list[Path], threshold: float) -> str:
+    """Markdown: per curve file, the first scored step whose NMI reaches `threshold` (when the options
+    split) and the last point's metrics."""
+    lines = [f"| run | first step with NMI >= {threshold:g} | last step | " + " | ".join(CURVE_METRICS) + " |",
+             "|---|---|---|" + "---|" * len(CURVE_METRICS)]
+    for path in paths:
+        curve = json.loads(path.read_text())["curve"]
+        split = next((point["step"] for point in curve if point["nmi"] >= threshold), None)
+        last = curve[-1]
+        lines.append(f"| {path.stem} | {'not within the run' if split is None else split} | {last['step']} | "
+                     + " | ".join(f"{last[metric]:.3f}" for metric in CURVE_METRICS) + " |")
+    return "\n".join(lines)
+
+
 def plot(args: argparse.Namespace) -> None:
-    """One panel per metric, one line per curve file, labelled by the file's stem."""
+    """One panel per metric, one line per curve file, labelled by the file's stem; prints `split_table`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -130,6 +149,7 @@ def plot(args: argparse.Namespace) -> None:
     fig.tight_layout()
     fig.savefig(args.png, dpi=110)
     plt.close(fig)
+    print(split_table(args.curves, args.split_nmi))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -159,9 +179,11 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                      help="OCNConfig fields, over the imitation study's main variant (n_options=3, temperature=10.0) "
                           "or over --init's config")
-    draw = sub.add_parser("plot", help="draw the curves of several runs into one PNG")
+    draw = sub.add_parser("plot", help="draw the curves of several runs into one PNG and print when each split")
     draw.add_argument("curves", type=Path, nargs="+")
     draw.add_argument("--png", type=Path, required=True)
+    draw.add_argument("--split-nmi", type=float, default=0.9,
+                      help="the NMI at which the printed table counts the options as split")
     args = parser.parse_args(argv)
     args.argv = argv
     if args.command == "train":
