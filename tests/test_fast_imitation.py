@@ -10,7 +10,7 @@ import torch
 from conftest import CRAFT_REPO_ID
 from ocn_data.episodes_table import load_episodes, split_episodes
 from tools.episode_parsing import load_policy, score_segmentations, segment_episodes
-from tools.fast_imitation import episode_batch, main, parse_overrides, split_table
+from tools.fast_imitation import episode_batch, episode_draws, main, parse_overrides, split_table
 
 
 def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
@@ -99,3 +99,15 @@ def test_in_memory_batches_train_what_lerobot_train_windows_train(craft_dataset)
         from_memory, memory_stats = policy.forward(episode_batch(split, rows))
     assert loader_stats["frames_used"] == memory_stats["frames_used"] == int(split.lengths[rows].sum())
     assert from_loader.item() == pytest.approx(from_memory.item(), rel=1e-6)
+
+
+def test_epoch_draws_take_every_frame_once_per_pass_and_replacement_draws_follow_lengths():
+    lengths = np.array([1, 2, 3, 6])  # 12 frames: 3 batches of 4 per pass
+    rng = np.random.default_rng(0)
+    epoch = episode_draws(lengths, 4, "epoch", rng)
+    for _ in range(2):
+        one_pass = np.concatenate([next(epoch) for _ in range(3)])
+        assert np.bincount(one_pass, minlength=4).tolist() == lengths.tolist()
+    replacement = episode_draws(lengths, 4, "replacement", rng)
+    drawn = np.concatenate([next(replacement) for _ in range(3000)])
+    assert np.bincount(drawn, minlength=4) / drawn.size == pytest.approx(lengths / lengths.sum(), abs=0.01)

@@ -17,6 +17,7 @@ import argparse
 import dataclasses
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +59,24 @@ def episode_batch(split: Any, rows: np.ndarray) -> dict[str, Any]:
             "task": [split.tasks[i] for i in rows.tolist()]}
 
 
+def episode_draws(lengths: np.ndarray, batch_size: int, sampler: str, rng: np.random.Generator) -> Iterator[np.ndarray]:
+    """Rows of the episodes of each batch, each episode drawn in proportion to its length.
+
+    "replacement": every batch drawn independently. "epoch": as LeRobot's `EpisodeAwareSampler`
+    under `lerobot-train`, a shuffled pass over every frame (a frame stands for its episode's window),
+    batches cut from it in order, then the next pass (here a batch may span two passes)."""
+    if sampler == "replacement":
+        while True:
+            yield rng.choice(len(lengths), batch_size, p=lengths / lengths.sum())
+    frame_episodes = np.repeat(np.arange(len(lengths)), lengths)
+    queue = np.empty(0, dtype=np.int64)
+    while True:
+        while len(queue) < batch_size:
+            queue = np.concatenate([queue, rng.permutation(frame_episodes)])
+        yield queue[:batch_size]
+        queue = queue[batch_size:]
+
+
 def train(args: argparse.Namespace) -> dict[str, Any]:
     """Train one seed, scoring the parse every `eval_every` steps; returns (and writes) the curve."""
     from lerobot.configs import PreTrainedConfig
@@ -82,14 +101,13 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
     train_split = load_episodes(args.root, split_episodes(args.root, "train"))
     val_split = load_episodes(args.root, split_episodes(args.root, "val"), max_episodes=args.val_episodes)
-    lengths = train_split.lengths
-    weights = lengths / lengths.sum()
+    draw = episode_draws(train_split.lengths, args.batch_size, args.sampler, rng)
     curve: list[dict[str, Any]] = []
     result = {"command": "python -m tools.fast_imitation " + " ".join(args.argv), "settings": dataclasses.asdict(config)
-              | {"seed": args.seed, "batch_size": args.batch_size, "steps": args.steps}, "curve": curve}
+              | {"seed": args.seed, "batch_size": args.batch_size, "steps": args.steps, "sampler": args.sampler}, "curve": curve}
     started, frames = time.perf_counter(), 0
     for step in range(1, args.steps + 1):
-        batch = episode_batch(train_split, rng.choice(len(lengths), args.batch_size, p=weights))
+        batch = episode_batch(train_split, next(draw))
         policy.train()
         loss, stats = policy.forward(batch)
         optimizer.zero_grad()
@@ -168,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--batch-size", type=int, default=128, help="episodes per step")
     run.add_argument("--window-size", type=int, default=24, help="longest episode (checked as under lerobot-train)")
     run.add_argument("--seed", type=int, default=1)
+    run.add_argument("--sampler", choices=("replacement", "epoch"), default="replacement",
+                     help="episodes of a batch drawn independently, or LeRobot's shuffled passes over all frames")
     run.add_argument("--eval-every", type=int, default=500)
     run.add_argument("--val-episodes", type=int, default=1200, help="validation episodes scored (the first ones)")
     run.add_argument("--threads", type=int, default=1)
