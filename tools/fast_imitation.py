@@ -66,8 +66,9 @@ def episode_draws(lengths: np.ndarray, batch_size: int, sampler: str, rng: np.ra
     under `lerobot-train`, a shuffled pass over every frame (a frame stands for its episode's window),
     batches cut from it in order, then the next pass (here a batch may span two passes)."""
     if sampler == "replacement":
+        weights = lengths / lengths.sum()
         while True:
-            yield rng.choice(len(lengths), batch_size, p=lengths / lengths.sum())
+            yield rng.choice(len(lengths), batch_size, p=weights)
     frame_episodes = np.repeat(np.arange(len(lengths)), lengths)
     queue = np.empty(0, dtype=np.int64)
     while True:

@@ -171,7 +171,8 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
     """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve.
     A finished run is made again when a clone it used was trained on since (`clones.json` keeps the
     clones' training commands; runs from before it existed are reused as they are)."""
-    out = args.workdir / f"finetune_{setting.name}" / f"{method.key}_{reward}{clone_suffix(args, method)}{budget_suffix(args)}" / f"seed{seed}"
+    folder = f"{method.key}_{reward}{clone_suffix(args, method)}{budget_suffix(args)}"
+    out = args.workdir / f"finetune_{setting.name}" / folder / f"seed{seed}"
     command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
     shown = " ".join(Path(word).name if word.startswith("/") else word for word in command)
     summary_path, command_path = out / "run" / "finetune.json", out / "finetune_command.txt"
