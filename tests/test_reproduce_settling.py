@@ -29,6 +29,9 @@ def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path
     run = tmp_path / "work" / "imitation_s1" / "3options_T10_usage_balance1.0" / "seed1"
     first, settled = (run / "train", run / "settle" / "train")
     command = (run / "settle" / "train_command.txt").read_text()
+    # lerobot-train reads the dataset's training view; ocn-eval scores on the recorded dataset.
+    view = tmp_path / "work" / "craft_s1_training_view"
+    assert f"--dataset.root={view} " in (run / "train_command.txt").read_text() and f"--dataset.root={view} " in command
     assert f"--policy.path={first / 'checkpoints' / 'last' / 'pretrained_model'}" in command
     assert "--policy.termination_cost=0.3" in command and "--policy.termination_penalty=log" in command
     config = json.loads((settled / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
