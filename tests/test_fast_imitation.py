@@ -32,13 +32,17 @@ def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
     val = load_episodes(craft_dataset, split_episodes(craft_dataset, "val"))
     reloaded = score_segmentations(val, segment_episodes(policy, preprocessor, val))
     assert reloaded == {key: result["curve"][-1][key] for key in reloaded}
-    # --init continues that model: its config (hidden size 16, not the default), then --set on top.
+    # --init continues that model: its config (hidden size 16, not the default), then --set on top. The
+    # config of a checkpoint from a resumed lerobot-train run names where it resumed from.
+    saved_config = tmp_path / "model" / "config.json"
+    saved_config.write_text(json.dumps({**json.loads(saved_config.read_text()), "pretrained_path": str(tmp_path)}))
     more = tmp_path / "continued.json"
     assert main(["train", "--root", str(craft_dataset), "--repo-id", CRAFT_REPO_ID, "--out", str(more), "--steps", "2",
                  "--batch-size", "8", "--eval-every", "2", "--init", str(tmp_path / "model"),
                  "--set", "termination_cost=0.1", "termination_penalty=log"]) == 0
     continued = json.loads(more.read_text())
     assert continued["settings"]["hidden_size"] == 16 and continued["settings"]["usage_balance"] == 1.0
+    assert continued["settings"]["pretrained_path"] == str(tmp_path)
     assert continued["settings"]["termination_penalty"] == "log" and continued["settings"]["termination_cost"] == 0.1
     png = tmp_path / "curves.png"
     assert main(["plot", str(out), "--png", str(png)]) == 0

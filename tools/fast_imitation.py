@@ -126,7 +126,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             curve.append(point)
             print(json.dumps(point), flush=True)
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps(result, indent=1) + "\n")
+            # default=str: a config read from a resumed lerobot-train checkpoint holds its pretrained_path as a Path.
+            args.out.write_text(json.dumps(result, indent=1, default=str) + "\n")
     if args.save is not None:
         policy.save_pretrained(args.save)
         for processor in make_pre_post_processors(config, dataset_stats=meta.stats):
