@@ -58,18 +58,21 @@ def test_fast_imitation_overrides_are_typed_config_fields():
         parse_overrides(["option_memory=maybe"])
 
 
-def test_split_table_names_the_first_step_at_the_nmi_threshold(tmp_path):
-    def curve(name, nmis):
+def test_split_table_names_the_first_step_at_the_nmi_threshold_and_the_episodes_drawn_by_then(tmp_path):
+    def curve(name, nmis, batch_size=128):
         path = tmp_path / f"{name}.json"
         points = [{"step": 500 * (k + 1), "nmi": nmi, "f1_tol1": 0.5, "align_acc": 0.25} for k, nmi in enumerate(nmis)]
-        path.write_text(json.dumps({"curve": points}))
+        path.write_text(json.dumps({"settings": {"batch_size": batch_size}, "curve": points}))
         return path
 
-    table = split_table([curve("late", [0.1, 0.89, 0.9, 0.95]), curve("never", [0.1, 0.2])], 0.9)
-    rows = table.splitlines()
-    assert rows[0].startswith("| run | first step with NMI >= 0.9 | last step |")
-    assert rows[2] == "| late | 1500 | 2000 | 0.950 | 0.500 | 0.250 |"
-    assert rows[3] == "| never | not within the run | 1000 | 0.200 | 0.500 | 0.250 |"
+    curves = [curve("late", [0.1, 0.89, 0.9, 0.95]), curve("never", [0.1, 0.2]), curve("small", [0.95], batch_size=32)]
+    rows = split_table(curves, 0.9).splitlines()
+    assert rows[0].startswith("| run | batch | first step with NMI >= 0.9 | episodes drawn by then | last step |")
+    assert rows[2] == "| late | 128 | 1500 | 192,000 | 2000 | 0.950 | 0.500 | 0.250 |"
+    assert rows[3] == "| never | 128 | not within the run | - | 1000 | 0.200 | 0.500 | 0.250 |"
+    assert rows[4] == "| small | 32 | 500 | 16,000 | 500 | 0.950 | 0.500 | 0.250 |"
+    assert main(["plot", *map(str, curves), "--png", str(tmp_path / "episodes.png"), "--x", "episodes"]) == 0
+    assert (tmp_path / "episodes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_in_memory_batches_train_what_lerobot_train_windows_train(craft_dataset):

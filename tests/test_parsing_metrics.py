@@ -91,3 +91,22 @@ def test_option_table_matches_options_to_subtasks():
     # Six options: the three best-matched ones are read, the spare ones ignored.
     six = option_table_summary(np.vstack([table, np.full((3, 3), 0.5)]))
     assert six["diagonal_mean"] == pytest.approx((0.96 + 0.97 + 0.99) / 3)
+
+
+def test_parse_statistics_shows_a_pair_of_options_sharing_two_subtasks():
+    from ocn_data.episodes_table import EpisodeArrays
+    from tools.episode_parsing import Segmentation, parse_statistics
+
+    # Two episodes: subtask ids 0 then 3 (4 + 2 frames, then padding), and 0 then 2 (3 + 3 frames).
+    subtask_id = np.array([[0, 0, 0, 0, 3, 3, -1], [0, 0, 0, 2, 2, 2, 2]])
+    lengths = np.array([6, 7])
+    # Option 2 does subtask 2 alone; options 0 and 1 share subtasks 0 (3 and 4 of its 7 frames) and 3.
+    labels = [np.array([0, 0, 1, 1, 0, 1]), np.array([1, 0, 1, 2, 2, 2, 2])]
+    episodes = EpisodeArrays(state=np.zeros((2, 7, 1)), action=np.zeros((2, 7, 1)), subtask_index=subtask_id,
+                             subtask_id=subtask_id, mask=subtask_id >= 0, lengths=lengths, tasks=["AD", "AC"],
+                             episode_index=np.arange(2))
+    parses = [Segmentation(np.array([1, 3, 4, 5]), labels[0]), Segmentation(np.array([0, 1, 2, 6]), labels[1])]
+    stats = parse_statistics(episodes, parses)
+    assert stats["label_by_subtask"] == {"0": [0.4286, 0.5714, 0.0], "2": [0.0, 0.0, 1.0], "3": [0.5, 0.5, 0.0]}
+    assert stats["label_share"] == [0.3077, 0.3846, 0.3077]
+    assert stats["segments_per_episode"] == 4.0 and stats["true_segments_per_episode"] == 2.0

@@ -230,7 +230,9 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
     """How a parse cuts the episodes, which the scores alone hide: predicted and true segments per
     episode, and, for labelled parses, each label's share of the frames ([share of label 0, 1, ...,
     up to the highest label used]), where an unused option shows as a share of 0 (or is past the
-    list's end) and a parse that never switches as one segment."""
+    list's end) and a parse that never switches as one segment; and `label_by_subtask`: for each true
+    subtask id, the share of its frames under each label (a pair of options that split two subtasks
+    half and half between them, which NMI only summarises, shows here as two rows of halves)."""
     true_segments = [len(boundaries_from_labels(episodes.subtask_index[i, :n])) for i, n in enumerate(episodes.lengths)]
     stats: dict[str, Any] = {
         "segments_per_episode": float(np.mean([len(parse.boundaries) for parse in parses])),
@@ -239,6 +241,12 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
     if all(parse.labels is not None for parse in parses):
         labels = np.concatenate([parse.labels for parse in parses]).astype(np.int64)
         stats["label_share"] = (np.bincount(labels) / labels.size).round(4).tolist()
+        subtasks = np.concatenate([episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)])
+        stats["label_by_subtask"] = {
+            str(subtask): (np.bincount(labels[subtasks == subtask], minlength=labels.max() + 1)
+                           / np.count_nonzero(subtasks == subtask)).round(4).tolist()
+            for subtask in np.unique(subtasks)
+        }
     return stats
 
 

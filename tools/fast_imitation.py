@@ -119,9 +119,10 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         if step % args.eval_every == 0 or step == args.steps:
             policy.eval()
             parses = segment_episodes(policy, lambda b: b, val_split)
+            shape = parse_statistics(val_split, parses)
             point = {"step": step, **{key: stats[key] for key in ("nll", "mean_end", "usage_imbalance")},
                      **score_segmentations(val_split, parses),
-                     "option_share": parse_statistics(val_split, parses).get("label_share"),
+                     "option_share": shape.get("label_share"), "option_by_subtask": shape.get("label_by_subtask"),
                      "train_frames_per_s": frames / (time.perf_counter() - started)}
             curve.append(point)
             print(json.dumps(point), flush=True)
@@ -137,20 +138,24 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
 
 def split_table(paths: list[Path], threshold: float) -> str:
     """Markdown: per curve file, the first scored step whose NMI reaches `threshold` (when the options
-    split) and the last point's metrics."""
-    lines = [f"| run | first step with NMI >= {threshold:g} | last step | " + " | ".join(CURVE_METRICS) + " |",
-             "|---|---|---|" + "---|" * len(CURVE_METRICS)]
+    split) and the training episodes drawn by then, and the last point's metrics."""
+    lines = [f"| run | batch | first step with NMI >= {threshold:g} | episodes drawn by then | last step | "
+             + " | ".join(CURVE_METRICS) + " |", "|---|---|---|---|---|" + "---|" * len(CURVE_METRICS)]
     for path in paths:
-        curve = json.loads(path.read_text())["curve"]
+        result = json.loads(path.read_text())
+        curve, batch = result["curve"], result["settings"]["batch_size"]
         split = next((point["step"] for point in curve if point["nmi"] >= threshold), None)
+        when = "not within the run | -" if split is None else f"{split} | {split * batch:,}"
         last = curve[-1]
-        lines.append(f"| {path.stem} | {'not within the run' if split is None else split} | {last['step']} | "
+        lines.append(f"| {path.stem} | {batch} | {when} | {last['step']} | "
                      + " | ".join(f"{last[metric]:.3f}" for metric in CURVE_METRICS) + " |")
     return "\n".join(lines)
 
 
 def plot(args: argparse.Namespace) -> None:
-    """One panel per metric, one line per curve file, labelled by the file's stem; prints `split_table`."""
+    """One panel per metric, one line per curve file, labelled by the file's stem, against training
+    steps or (`--x episodes`) the episodes drawn, which compares runs of different batch sizes;
+    prints `split_table`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -158,12 +163,14 @@ def plot(args: argparse.Namespace) -> None:
 
     fig, axes = plt.subplots(1, len(CURVE_METRICS), figsize=(4.5 * len(CURVE_METRICS), 3.6))
     for path in args.curves:
-        curve = json.loads(path.read_text())["curve"]
+        result = json.loads(path.read_text())
+        scale = result["settings"]["batch_size"] if args.x == "episodes" else 1
+        curve = result["curve"]
         for ax, metric in zip(axes, CURVE_METRICS, strict=True):
-            ax.plot([p["step"] for p in curve], [p[metric] for p in curve], marker=".", label=path.stem)
+            ax.plot([p["step"] * scale for p in curve], [p[metric] for p in curve], marker=".", label=path.stem)
     for ax, metric in zip(axes, CURVE_METRICS, strict=True):
         ax.set_title(metric)
-        ax.set_xlabel("training step")
+        ax.set_xlabel("training step" if args.x == "step" else "training episodes drawn")
         ax.set_ylim(0, 1.02)
     axes[-1].legend(fontsize=7)
     fig.tight_layout()
@@ -204,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     draw = sub.add_parser("plot", help="draw the curves of several runs into one PNG and print when each split")
     draw.add_argument("curves", type=Path, nargs="+")
     draw.add_argument("--png", type=Path, required=True)
+    draw.add_argument("--x", choices=("step", "episodes"), default="step",
+                      help="the curves' axis: training steps, or episodes drawn (steps times the run's batch size)")
     draw.add_argument("--split-nmi", type=float, default=0.9,
                       help="the NMI at which the printed table counts the options as split")
     args = parser.parse_args(argv)
