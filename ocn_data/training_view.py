@@ -14,6 +14,7 @@ training windows (tests/test_training_view.py); `ocn-bench train` measures the l
 from __future__ import annotations
 
 import argparse
+import fcntl
 import hashlib
 import json
 import shutil
@@ -62,13 +63,16 @@ def training_view(root: Path, repo_id: str) -> Path:
         return root
     view, fingerprint = training_view_path(root), metadata_fingerprint(root)
     marker = view / MARKER
-    if marker.is_file() and json.loads(marker.read_text()).get("source_meta_sha256") == fingerprint:
-        return view
-    shutil.rmtree(view, ignore_errors=True)
-    print(f"writing the training view of {root} (without {', '.join(dropped)}) to {view}", flush=True)
-    remove_feature(LeRobotDataset(repo_id, root=root), dropped, output_dir=view, repo_id=repo_id)
-    marker.write_text(json.dumps({"source": str(root), "source_meta_sha256": fingerprint, "dropped": dropped},
-                                 indent=2) + "\n")
+    # Reproductions run side by side (`ocn-reproduce --first-seed`) may ask at once: one writes, the others wait.
+    with open(view.parent / f"{view.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if marker.is_file() and json.loads(marker.read_text()).get("source_meta_sha256") == fingerprint:
+            return view
+        shutil.rmtree(view, ignore_errors=True)
+        print(f"writing the training view of {root} (without {', '.join(dropped)}) to {view}", flush=True)
+        remove_feature(LeRobotDataset(repo_id, root=root), dropped, output_dir=view, repo_id=repo_id)
+        marker.write_text(json.dumps({"source": str(root), "source_meta_sha256": fingerprint, "dropped": dropped},
+                                     indent=2) + "\n")
     return view
 
 

@@ -62,3 +62,18 @@ def test_a_current_view_is_reused_and_a_stale_one_remade(craft_dataset, tmp_path
     marker.unlink()
     training_view(source, CRAFT_REPO_ID)
     assert marker.is_file()
+
+
+def test_views_asked_for_at_once_are_written_once(craft_dataset, tmp_path):
+    import multiprocessing
+    import shutil
+    from concurrent.futures import ProcessPoolExecutor
+
+    source = tmp_path / "ds"
+    shutil.copytree(craft_dataset, source)
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        views = list(pool.map(training_view, [source, source], [CRAFT_REPO_ID, CRAFT_REPO_ID]))
+    assert views == [training_view_path(source)] * 2
+    marker = json.loads((views[0] / MARKER).read_text())
+    assert marker["source"] == str(source) and "subtask.id" in marker["dropped"]
+    assert read_info(views[0])["total_frames"] == read_info(source)["total_frames"]
