@@ -58,7 +58,8 @@ def training_view(root: Path, repo_id: str) -> Path:
 
     root = Path(root)
     features = read_info(root)["features"]
-    dropped = [name for name in features if name not in trained_columns(features)]
+    kept = trained_columns(features)
+    dropped = [name for name in features if name not in kept]
     if not dropped:
         return root
     view, fingerprint = training_view_path(root), metadata_fingerprint(root)

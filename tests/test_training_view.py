@@ -6,7 +6,7 @@ import json
 import torch
 
 from conftest import CRAFT_REPO_ID
-from ocn_data.episodes_table import read_info
+from ocn_data.episodes_table import read_info, split_episodes
 from ocn_data.training_view import MARKER, training_view, training_view_path
 
 COMPARED = ("observation.state", "action", "observation.state_is_pad", "action_is_pad", "episode_index",
@@ -28,7 +28,7 @@ def test_the_view_gives_lerobot_train_the_same_windows_without_the_label_columns
     for key in ("splits", "total_episodes", "total_frames", "robot_type", "fps"):
         assert view_info[key] == source_info[key], key
     # The train split as lerobot-train loads it (episode-filtered), every frame's window compared.
-    train = list(range(*map(int, source_info["splits"]["train"].split(":"))))
+    train = list(split_episodes(craft_dataset, "train"))
     delta = resolve_delta_timestamps(OCNConfig(device="cpu", window_size=30),
                                      LeRobotDatasetMetadata(CRAFT_REPO_ID, root=craft_dataset))
     source, lean = (LeRobotDataset(CRAFT_REPO_ID, root=root, episodes=train, delta_timestamps=delta)
