@@ -27,6 +27,8 @@ def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
         assert point["nll"] > 0 and 0 <= point["usage_imbalance"] <= 1.0987
         assert all(0 <= point[key] <= 1 for key in ("f1_tol0", "f1_tol1", "align_acc", "nmi"))
         assert sum(point["option_share"]) == pytest.approx(1.0, abs=1e-3)
+        for thirds in point["option_by_subtask_third"].values():
+            assert all(third is None or sum(third) == pytest.approx(1.0, abs=1e-3) for third in thirds)
     policy, preprocessor, _ = load_policy(tmp_path / "model")
     assert policy.config.usage_balance == 1.0 and policy.config.hidden_size == 16
     val = load_episodes(craft_dataset, split_episodes(craft_dataset, "val"))

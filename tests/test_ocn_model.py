@@ -15,7 +15,7 @@ from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
 from policies.ocn.modeling_ocn import termination_penalty, usage_imbalance
 from policies.ocn.heads import DiscreteHead, GaussianHead, mixture_log_prob, sample_index
-from policies.ocn.recurrence import OCNState
+from policies.ocn.recurrence import OCNState, StepOutput
 from policies.sequence import training_windows
 
 torch.set_num_threads(1)
@@ -289,6 +289,43 @@ def test_usage_balance_adds_the_weighted_imbalance_and_moves_the_controller_towa
     assert balance_grad[0] > 0 and (balance_grad[1:] < 0).all()
     with pytest.raises(ValueError, match="usage_balance must be >= 0, got -0.5"):
         make_policy(usage_balance=-0.5)
+
+
+def test_expected_nll_charges_each_weighted_option_for_its_own_prediction():
+    policy = make_policy()
+    # One frame, two components of the 2N mixing the (hand-set) prediction of two options that each
+    # favour another action; action 0 is taken.
+    probs = torch.tensor([[0.9, 0.1 / 3, 0.1 / 3, 0.1 / 3], [0.1 / 3, 0.9, 0.1 / 3, 0.1 / 3]])
+    params = torch.full((1, 2 * N_OPTIONS, 1, 4), -30.0)
+    params[0, :2, 0] = probs.log()
+    weights = torch.zeros(1, 1, 2 * N_OPTIONS)
+    weights[0, 0, :2] = 0.5
+    out = StepOutput(weights, params, torch.full((1, 1, N_OPTIONS), 1 / N_OPTIONS), torch.ones(1, 1), torch.ones(1, 1, N_OPTIONS))
+    action = torch.zeros(1, 1, 1)
+    mixed = math.log(0.5 * 0.9 + 0.5 * 0.1 / 3)
+    expected = 0.5 * math.log(0.9) + 0.5 * math.log(0.1 / 3)
+    assert policy._action_log_prob(out, action).item() == pytest.approx(mixed, rel=1e-5)
+    assert policy._expected_log_prob(out, action).item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_expected_nll_weight_adds_the_weighted_expected_nll_over_real_frames():
+    batch = make_batch(steps=5)
+    batch[f"{ACTION}_is_pad"][0, 3:] = True  # window 0 has 3 real frames
+    plain_loss, plain = make_policy().forward(batch)
+    policy = make_policy(expected_nll_weight=0.5)
+    loss, stats = policy.forward(batch)
+    out = policy._unroll(batch[OBS_STATE], batch["task"])
+    component = policy.head.log_prob(out.params, batch[ACTION].transpose(0, 1))  # [T, 2N, B]
+    expected_nll = -(out.weights * component.transpose(-1, -2)).sum(-1).transpose(0, 1).detach()  # [B, T]
+    per_window = torch.stack([expected_nll[0, :3].mean()] + [row.mean() for row in expected_nll[1:]])
+    torch.testing.assert_close(loss, plain_loss + 0.5 * per_window.mean())
+    assert stats["nll"] == pytest.approx(plain["nll"])
+    assert stats["expected_nll"] == pytest.approx(per_window.mean().item())
+    assert stats["expected_nll"] > stats["nll"]  # Jensen: the log outside the sum is never above
+    loss.backward()
+    assert all(p.grad is not None for p in policy.parameters() if p.requires_grad)
+    with pytest.raises(ValueError, match="expected_nll_weight must be >= 0, got -1.0"):
+        make_policy(expected_nll_weight=-1.0)
 
 
 def test_initial_state_std_draws_distinct_task_states_that_send_tasks_to_different_options():

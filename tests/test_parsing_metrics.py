@@ -109,4 +109,11 @@ def test_parse_statistics_shows_a_pair_of_options_sharing_two_subtasks():
     stats = parse_statistics(episodes, parses)
     assert stats["label_by_subtask"] == {"0": [0.4286, 0.5714, 0.0], "2": [0.0, 0.0, 1.0], "3": [0.5, 0.5, 0.0]}
     assert stats["label_share"] == [0.3077, 0.3846, 0.3077]
+    # By thirds of each true segment (frame j of L in third 3j // L): subtask 0's segments are
+    # labelled 0 0 | 1 | 1 (4 frames) and 1 | 0 | 1 (3 frames); subtask 3's two frames fill two thirds.
+    assert stats["label_by_subtask_third"] == {
+        "0": [[0.6667, 0.3333, 0.0], [0.5, 0.5, 0.0], [0.0, 1.0, 0.0]],
+        "2": [[0.0, 0.0, 1.0]] * 3,
+        "3": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], None],
+    }
     assert stats["segments_per_episode"] == 4.0 and stats["true_segments_per_episode"] == 2.0

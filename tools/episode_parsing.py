@@ -232,7 +232,10 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
     up to the highest label used]), where an unused option shows as a share of 0 (or is past the
     list's end) and a parse that never switches as one segment; and `label_by_subtask`: for each true
     subtask id, the share of its frames under each label (a pair of options that split two subtasks
-    half and half between them, which NMI only summarises, shows here as two rows of halves)."""
+    half and half between them, which NMI only summarises, shows here as two rows of halves); and
+    `label_by_subtask_third`: the same shares in the first, middle and last third of each true
+    segment (None for a third without frames), which tell a pair that splits subtasks by target
+    from one that splits them by phase, one option starting every subtask and the other finishing it."""
     true_segments = [len(boundaries_from_labels(episodes.subtask_index[i, :n])) for i, n in enumerate(episodes.lengths)]
     stats: dict[str, Any] = {
         "segments_per_episode": float(np.mean([len(parse.boundaries) for parse in parses])),
@@ -243,11 +246,28 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
         stats["label_share"] = (np.bincount(labels) / labels.size).round(4).tolist()
         subtasks = np.concatenate([episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)])
         stats["label_by_subtask"] = {
-            str(subtask): (np.bincount(labels[subtasks == subtask], minlength=labels.max() + 1)
-                           / np.count_nonzero(subtasks == subtask)).round(4).tolist()
+            str(subtask): _shares(labels[subtasks == subtask], labels.max() + 1) for subtask in np.unique(subtasks)
+        }
+        thirds = np.concatenate([_segment_thirds(episodes.subtask_index[i, :n]) for i, n in enumerate(episodes.lengths)])
+        stats["label_by_subtask_third"] = {
+            str(subtask): [_shares(labels[(subtasks == subtask) & (thirds == third)], labels.max() + 1) for third in range(3)]
             for subtask in np.unique(subtasks)
         }
     return stats
+
+
+def _segment_thirds(segment_index: np.ndarray) -> np.ndarray:
+    """Per frame of one episode's segment index [T], the third (0, 1, 2) of its segment it lies in:
+    frame j of a segment of L frames is in third floor(3 j / L)."""
+    starts = np.flatnonzero(np.r_[True, segment_index[1:] != segment_index[:-1]])
+    lengths = np.diff(np.r_[starts, segment_index.size])
+    offset = np.arange(segment_index.size) - np.repeat(starts, lengths)
+    return 3 * offset // np.repeat(lengths, lengths)
+
+
+def _shares(labels: np.ndarray, n_labels: int) -> list[float] | None:
+    """Each label's share of `labels`, rounded; None when there are none."""
+    return (np.bincount(labels, minlength=n_labels) / labels.size).round(4).tolist() if labels.size else None
 
 
 def score_segmentations(episodes: EpisodeArrays, parses: Sequence[Segmentation]) -> dict[str, float | None]:

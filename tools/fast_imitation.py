@@ -123,6 +123,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             point = {"step": step, **{key: stats[key] for key in ("nll", "mean_end", "usage_imbalance")},
                      **score_segmentations(val_split, parses),
                      "option_share": shape.get("label_share"), "option_by_subtask": shape.get("label_by_subtask"),
+                     "option_by_subtask_third": shape.get("label_by_subtask_third"),
                      "train_frames_per_s": frames / (time.perf_counter() - started)}
             curve.append(point)
             print(json.dumps(point), flush=True)

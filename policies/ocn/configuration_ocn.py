@@ -89,6 +89,14 @@ class OCNConfig(SequenceConfig):
     # and the others wait for a split that may or may not come (the load-balancing term of
     # mixture-of-experts models, on the option shares).
     usage_balance: float = 0.0
+    # Added to the loss: this weight times the expected NLL under the mixture weights,
+    # sum_k w_k (-log p_k(a_t)), averaged like the NLL (0: the paper's loss alone). Over discrete
+    # actions the mixture of the options' categoricals is itself one categorical, so under the
+    # mixture NLL the options may cooperate: two options that each know only part of a subtask can
+    # predict the action together, in weights that the task-aware controller sets. The expected NLL
+    # charges every weighted option for its own prediction. Measured on S1 (results/
+    # imitation_s1_split_time/, third part): it sharpened one blurred split and broke no stuck pair.
+    expected_nll_weight: float = 0.0
 
     # How `select_action` runs the hierarchy. "soft": the differentiable eq. 17 mixture that training
     # uses. "hard": the option-level semantics of the RL phase (appendix A.1): the controller samples
@@ -138,6 +146,8 @@ class OCNConfig(SequenceConfig):
             )
         if self.usage_balance < 0:
             raise ValueError(f"usage_balance must be >= 0, got {self.usage_balance}.")
+        if self.expected_nll_weight < 0:
+            raise ValueError(f"expected_nll_weight must be >= 0, got {self.expected_nll_weight}.")
         if self.initial_state_std < 0:
             raise ValueError(f"initial_state_std must be >= 0, got {self.initial_state_std}.")
         if self.temperature <= 0:

@@ -116,13 +116,21 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         return self.core.unroll(x, initial, start)[1]
 
     def _action_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
-        """log p^a_t(a_t) [B, T] for time-major outputs and batch-major actions [B, T, A].
+        """log p^a_t(a_t) [B, T] for time-major outputs and batch-major actions [B, T, A]."""
+        return mixture_log_prob(out.weights, self._component_log_prob(out, action)).transpose(0, 1)
+
+    def _component_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
+        """log p_k(a_t) [T, 2N, B] of each mixture component, for batch-major actions [B, T, A].
 
         LeRobot hands one-wide action features over as [B, T] (no feature axis), hence the reshape.
         """
         action = action.reshape(*action.shape[:2], self.config.action_dim)
-        component = self.head.log_prob(out.params, action.transpose(0, 1))
-        return mixture_log_prob(out.weights, component).transpose(0, 1)
+        return self.head.log_prob(out.params, action.transpose(0, 1))
+
+    def _expected_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
+        """sum_k w_k log p_k(a_t) [B, T]: the mixture's log-likelihood with the log inside the sum."""
+        component = self._component_log_prob(out, action).transpose(-1, -2)
+        return (out.weights * component).sum(-1).transpose(0, 1)
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
@@ -136,6 +144,10 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         stats["usage_imbalance"] = imbalance.item()
         if self.config.usage_balance:
             loss = loss + self.config.usage_balance * imbalance
+        if self.config.expected_nll_weight:
+            expected, expected_stats = window_nll(self._expected_log_prob(out, action), mask, reduction, {})
+            stats["expected_nll"] = expected_stats["nll"]
+            loss = loss + self.config.expected_nll_weight * expected
         return loss, stats
 
     @torch.no_grad()
