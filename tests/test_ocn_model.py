@@ -14,7 +14,7 @@ from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
 from policies.ocn.modeling_ocn import termination_penalty, usage_imbalance
-from policies.ocn.heads import DiscreteHead, GaussianHead, mixture_log_prob, sample_index
+from policies.ocn.heads import DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, sample_index
 from policies.ocn.recurrence import OCNState, StepOutput
 from policies.sequence import training_windows
 
@@ -304,8 +304,9 @@ def test_expected_nll_charges_each_weighted_option_for_its_own_prediction():
     action = torch.zeros(1, 1, 1)
     mixed = math.log(0.5 * 0.9 + 0.5 * 0.1 / 3)
     expected = 0.5 * math.log(0.9) + 0.5 * math.log(0.1 / 3)
-    assert policy._action_log_prob(out, action).item() == pytest.approx(mixed, rel=1e-5)
-    assert policy._expected_log_prob(out, action).item() == pytest.approx(expected, rel=1e-5)
+    component = policy._component_log_prob(out, action)
+    assert policy._action_log_prob(out, component).item() == pytest.approx(mixed, rel=1e-5)
+    assert expected_log_prob(out.weights, component).item() == pytest.approx(expected, rel=1e-5)
 
 
 def test_expected_nll_weight_adds_the_weighted_expected_nll_over_real_frames():

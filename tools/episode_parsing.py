@@ -243,7 +243,7 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
     }
     if all(parse.labels is not None for parse in parses):
         labels = np.concatenate([parse.labels for parse in parses]).astype(np.int64)
-        stats["label_share"] = (np.bincount(labels) / labels.size).round(4).tolist()
+        stats["label_share"] = _shares(labels, labels.max() + 1)
         subtasks = np.concatenate([episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)])
         stats["label_by_subtask"] = {
             str(subtask): _shares(labels[subtasks == subtask], labels.max() + 1) for subtask in np.unique(subtasks)
@@ -259,7 +259,7 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
 def _segment_thirds(segment_index: np.ndarray) -> np.ndarray:
     """Per frame of one episode's segment index [T], the third (0, 1, 2) of its segment it lies in:
     frame j of a segment of L frames is in third floor(3 j / L)."""
-    starts = np.flatnonzero(np.r_[True, segment_index[1:] != segment_index[:-1]])
+    starts = segment_starts(segment_index)
     lengths = np.diff(np.r_[starts, segment_index.size])
     offset = np.arange(segment_index.size) - np.repeat(starts, lengths)
     return 3 * offset // np.repeat(lengths, lengths)

@@ -24,6 +24,12 @@ def mixture_log_prob(weights: Tensor, component_log_prob: Tensor) -> Tensor:
     return top.squeeze(-1) + torch.log(total.clamp_min(torch.finfo(total.dtype).tiny))
 
 
+def expected_log_prob(weights: Tensor, component_log_prob: Tensor) -> Tensor:
+    """sum_k w_k log p_k(a), the mixture's log-likelihood with the log inside the sum (a lower bound
+    on `mixture_log_prob`): weights [..., B, K], component_log_prob [..., K, B] -> [..., B]."""
+    return (weights * component_log_prob.transpose(-1, -2)).sum(dim=-1)
+
+
 def sample_index(probs: Tensor) -> Tensor:
     """One index per row of probabilities [B, K], drawn as argmax_k p_k / E_k with E_k ~ Exp(1)
     (the exponential race). That is how `torch.multinomial` draws a single sample, so the draws are

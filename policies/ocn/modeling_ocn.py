@@ -17,7 +17,7 @@ from policies.sequence import SequencePolicy, frame_mask, training_windows, wind
 
 from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
-from .heads import make_action_head, mixture_log_prob
+from .heads import expected_log_prob, make_action_head, mixture_log_prob
 from .latent_options import LatentDecoderPool
 from .recurrence import HardState, OCNCore, OCNState, StepOutput
 
@@ -115,22 +115,19 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         initial = self.core.initial_state(self.task_index(tasks, batch))
         return self.core.unroll(x, initial, start)[1]
 
-    def _action_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
-        """log p^a_t(a_t) [B, T] for time-major outputs and batch-major actions [B, T, A]."""
-        return mixture_log_prob(out.weights, self._component_log_prob(out, action)).transpose(0, 1)
-
     def _component_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
-        """log p_k(a_t) [T, 2N, B] of each mixture component, for batch-major actions [B, T, A].
+        """log p_k(a_t) [T, 2N, B] of each mixture component, for time-major outputs and batch-major
+        actions [B, T, A].
 
         LeRobot hands one-wide action features over as [B, T] (no feature axis), hence the reshape.
         """
         action = action.reshape(*action.shape[:2], self.config.action_dim)
         return self.head.log_prob(out.params, action.transpose(0, 1))
 
-    def _expected_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
-        """sum_k w_k log p_k(a_t) [B, T]: the mixture's log-likelihood with the log inside the sum."""
-        component = self._component_log_prob(out, action).transpose(-1, -2)
-        return (out.weights * component).sum(-1).transpose(0, 1)
+    @staticmethod
+    def _action_log_prob(out: StepOutput, component: Tensor) -> Tensor:
+        """log p^a_t(a_t) [B, T], the mixed action distribution's, from `_component_log_prob`'s."""
+        return mixture_log_prob(out.weights, component).transpose(0, 1)
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
@@ -139,13 +136,15 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         penalties = {}
         if self.config.termination_cost:
             penalties["termination_penalty"] = (self.config.termination_cost, termination_penalty(self.config, out.end))
-        loss, stats = window_nll(self._action_log_prob(out, action), mask, reduction, {"mean_end": out.end}, penalties)
+        component = self._component_log_prob(out, action)
+        loss, stats = window_nll(self._action_log_prob(out, component), mask, reduction, {"mean_end": out.end}, penalties)
         imbalance = usage_imbalance(out.p_c, mask)
         stats["usage_imbalance"] = imbalance.item()
         if self.config.usage_balance:
             loss = loss + self.config.usage_balance * imbalance
         if self.config.expected_nll_weight:
-            expected, expected_stats = window_nll(self._expected_log_prob(out, action), mask, reduction, {})
+            expected_lp = expected_log_prob(out.weights, component).transpose(0, 1)
+            expected, expected_stats = window_nll(expected_lp, mask, reduction, {})
             stats["expected_nll"] = expected_stats["nll"]
             loss = loss + self.config.expected_nll_weight * expected
         return loss, stats
@@ -167,7 +166,7 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             "mask": frame_mask(batch),
         }
         if ACTION in batch:
-            result["action_log_prob"] = self._action_log_prob(out, batch[ACTION])
+            result["action_log_prob"] = self._action_log_prob(out, self._component_log_prob(out, batch[ACTION]))
         return result
 
     def _episode_starts(self, batch: dict[str, Any]) -> Tensor:
