@@ -310,13 +310,13 @@ def _log_rates(log: str) -> list[dict[str, float]]:
     return rows
 
 
-def bench_lerobot_train(root: Path, steps: int, batch_size: int, workers: int, window: int) -> dict:
+def bench_lerobot_train(root: Path, steps: int, batch_size: int, workers: int, window: int, device: str) -> dict:
     """A real `lerobot-train --policy.type=ocn` run on `root`; rates from its own step timings,
     skipping the first logged interval (worker start-up)."""
     with tempfile.TemporaryDirectory() as tmp:
         command = [
             console_script("lerobot-train"), "--policy.type=ocn", "--dataset.repo_id=local/craft_s1",
-            f"--dataset.root={root}", "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false",
+            f"--dataset.root={root}", f"--policy.device={device}", "--policy.push_to_hub=false", "--wandb.enable=false",
             "--env_eval_freq=0", f"--steps={steps}", f"--batch_size={batch_size}", f"--num_workers={workers}",
             "--log_freq=25", f"--save_freq={steps}", f"--policy.window_size={window}", f"--output_dir={tmp}/run",
         ]
@@ -361,7 +361,7 @@ def bench_getitem(roots: list[Path], window: int, items: int = 300, rounds: int 
     return best
 
 
-def bench_update(root: Path, batch_size: int, window: int, threads: int) -> dict:
+def bench_update(root: Path, batch_size: int, window: int, threads: int, device: str) -> dict:
     """The model's forward + backward on real S1 episodes, without LeRobot's data loading."""
     from ocn_data.episodes_table import load_episodes
     from policies.ocn import OCNConfig, OCNPolicy
@@ -375,27 +375,27 @@ def bench_update(root: Path, batch_size: int, window: int, threads: int) -> dict
     state = np.pad(episodes.state, ((0, 0), (0, pad), (0, 0)))
     action = np.pad(episodes.action, ((0, 0), (0, pad), (0, 0)))
     config = OCNConfig(
-        device="cpu", window_size=window, window_start="any", tasks=sorted(set(episodes.tasks)),
+        device=device, window_size=window, window_start="any", tasks=sorted(set(episodes.tasks)),
         input_features={"observation.state": PolicyFeature(FeatureType.STATE, (state.shape[-1],))},
         output_features={"action": PolicyFeature(FeatureType.ACTION, (1,))},
     )
     batch = {
-        "observation.state": torch.from_numpy(state).float(),
-        "action": torch.from_numpy(action).float(),
-        "action_is_pad": torch.from_numpy(np.pad(~episodes.mask, ((0, 0), (0, pad)), constant_values=True)),
+        "observation.state": torch.from_numpy(state).float().to(device),
+        "action": torch.from_numpy(action).float().to(device),
+        "action_is_pad": torch.from_numpy(np.pad(~episodes.mask, ((0, 0), (0, pad)), constant_values=True)).to(device),
         "task": episodes.tasks,
     }
     with torch_threads(threads):
-        padded_fps = train_frames_per_second(OCNPolicy(config), batch)
+        padded_fps = train_frames_per_second(OCNPolicy(config).to(device), batch)
     real = float(episodes.lengths.sum()) / (batch_size * window)
     return {"threads": threads, "padded_frames_per_s": padded_fps, "real_frames_per_s": padded_fps * real}
 
 
-def bench_select_action() -> dict[str, float]:
+def bench_select_action(device: str = "cpu") -> dict[str, float]:
     """Seconds per `select_action` step of the benchmark policy, for 1 and 64 envs."""
     from policies.ocn.benchmark import make_bench_policy, select_action_latency
 
-    policy = make_bench_policy()
+    policy = make_bench_policy(device=device)
     return {
         "batch_1": select_action_latency(policy, batch_size=1),
         "batch_64": select_action_latency(policy, batch_size=64),
@@ -404,7 +404,8 @@ def bench_select_action() -> dict[str, float]:
 
 def run_train_bench(args: argparse.Namespace) -> None:
     if args.only == "latency":
-        result = {"machine": machine(), "load_average": os.getloadavg(), "select_action_s": bench_select_action()}
+        result = {"machine": machine(), "device": accelerator(args.device), "load_average": os.getloadavg(),
+                  "select_action_s": bench_select_action(args.device)}
         print(json.dumps(result, indent=2))
         return
 
@@ -423,23 +424,51 @@ def run_train_bench(args: argparse.Namespace) -> None:
     runs: dict[Path, list[dict]] = {root: [], view: []}
     for _ in range(args.train_rounds):
         for data, done in runs.items():
-            done.append(bench_lerobot_train(data, args.steps, args.batch_size, args.workers, args.window))
+            done.append(bench_lerobot_train(data, args.steps, args.batch_size, args.workers, args.window, args.device))
     full, lean = (max(done, key=lambda run: run["real_frames_per_s"]) for done in runs.values())
     getitem, getitem_view = bench_getitem([root, view], args.window)
     result = {
         "benchmark": "ocn-bench train",
         "machine": machine(),
+        "device": accelerator(args.device),
         "note": args.note,
         "train_rounds": args.train_rounds,
         "lerobot_train": full,
         "lerobot_train_view": lean,
         "getitem_s_per_window": getitem,
         "getitem_view_s_per_window": getitem_view,
-        "update_only": [bench_update(root, args.batch_size, args.window, t) for t in (1, 2)],
-        "stacked_vs_loop": compare_stacked_vs_loop(batch_size=512, window=32, threads=2),
-        "select_action_s": bench_select_action(),
+        # CPU threads only matter to a CPU update; a GPU one is measured once.
+        "update_only": [bench_update(root, args.batch_size, args.window, t, args.device)
+                        for t in ((1, 2) if args.device == "cpu" else (1,))],
+        "stacked_vs_loop": compare_stacked_vs_loop(batch_size=512, window=32, threads=2, device=args.device),
+        "select_action_s": bench_select_action(args.device),
     }
     _write(result, Path(args.out), _train_markdown(result))
+
+
+def accelerator(device: str) -> dict:
+    """What the model ran on: the CPU, or the named GPU (an error when torch sees none)."""
+    import torch
+
+    if device == "cpu":
+        return {"type": "cpu"}
+    if not torch.cuda.is_available():
+        raise SystemExit(f"--device {device}: torch {torch.__version__} sees no CUDA device on this machine")
+    return {"type": "cuda", "name": torch.cuda.get_device_name(device), "torch": torch.__version__,
+            "cuda": torch.version.cuda}
+
+
+def _on_cpu(r: dict) -> bool:
+    return r["device"]["type"] == "cpu"
+
+
+def _device_flag(r: dict) -> str:
+    return "" if _on_cpu(r) else f" --device {r['device']['type']}"
+
+
+def _device_words(r: dict) -> str:
+    d = r["device"]
+    return "the CPU" if _on_cpu(r) else f"{d['name']} (torch {d['torch']}, CUDA {d['cuda']})"
 
 
 def _lerobot_train_row(what: str, t: dict) -> str:
@@ -459,7 +488,8 @@ def _train_markdown(r: dict) -> str:
     )
     return (
         "# OCN training and inference speed\n\n"
-        f"Command: `ocn-bench train`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}.\n\n"
+        f"Command: `ocn-bench train{_device_flag(r)}`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}. "
+        f"Model and updates on: {_device_words(r)}.\n\n"
         f"{conditions}"
         "| what | rate |\n|---|---|\n"
         + _lerobot_train_row("S1", t)
@@ -471,7 +501,8 @@ def _train_markdown(r: dict) -> str:
         f"{getitem * 1e3:.1f} ms per window |\n"
         f"| the same on the training view (the two interleaved, best of 5 each) | "
         f"{getitem_view * 1e3:.1f} ms per window ({getitem / getitem_view:.2f}x faster) |\n"
-        f"| stacked options, forward + backward [512 x 32], 2 threads | {loop['stacked_frames_per_s']:,.0f} frames/s |\n"
+        f"| stacked options, forward + backward [512 x 32]{', 2 threads' if _on_cpu(r) else ''} | "
+        f"{loop['stacked_frames_per_s']:,.0f} frames/s |\n"
         f"| per-option Python loop, same weights and batch | {loop['loop_frames_per_s']:,.0f} frames/s "
         f"(stacked is {loop['speedup']:.2f}x) |\n"
         f"| `select_action` in inference mode (as `lerobot-eval`), 1 env | {sa['batch_1'] * 1e3:.2f} ms per step |\n"
@@ -534,6 +565,8 @@ def main(argv: list[str] | None = None) -> None:
     train.add_argument("--train-rounds", type=int, default=2,
                        help="lerobot-train runs on the dataset and on its training view, in turn; the best of each counts")
     train.add_argument("--out", default=str(RESULTS / "bench_train.json"))
+    train.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                       help="where lerobot-train and the timed updates run; data loading stays on the CPU")
     train.add_argument("--note", default="", help="conditions of the run, stored with the results")
     train.add_argument("--only", choices=["latency"],
                        help="measure select_action latency alone and print it as JSON (nothing is written)")

@@ -35,7 +35,7 @@ class LoopedCell(StackedCell):
         depth = len(cell.w_mlp) + 1
         looped = cls(n_modules, in_dim, cell.hidden_size, width, depth, cell.n_out, cell.with_end)
         looped.load_state_dict(cell.state_dict())
-        return looped
+        return looped.to(cell.w_x.device)
 
     def project(self, x: Tensor) -> Tensor:
         parts = [x @ self.w_x[i] + self.b_in[i] for i in range(self.n_modules)]
@@ -64,10 +64,11 @@ def make_bench_policy(
     obs_dim: int = OMPN_DIM,
     n_actions: int = 5,
     window: int = 32,
+    device: str = "cpu",
 ) -> OCNPolicy:
-    """A discrete-action OCN on float observations of Craft's OMPN width (identity encoder)."""
+    """A discrete-action OCN on float observations of Craft's OMPN width (identity encoder), on `device`."""
     config = OCNConfig(
-        device="cpu",
+        device=device,
         n_options=n_options,
         hidden_size=hidden_size,
         mlp_hidden_size=hidden_size,
@@ -79,16 +80,17 @@ def make_bench_policy(
         input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (obs_dim,))},
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))},
     )
-    return OCNPolicy(config)
+    return OCNPolicy(config).to(device)
 
 
 def random_batch(policy: OCNPolicy, batch_size: int, window: int) -> dict:
-    """A training batch of random one-hot-like observations and actions, no padding."""
+    """A training batch of random one-hot-like observations and actions, no padding, on the policy's device."""
     obs_dim = policy.encoder.out_dim
+    device = policy.config.device
     return {
-        OBS_STATE: (torch.rand(batch_size, window, obs_dim) < 0.05).float(),
-        ACTION: torch.randint(0, policy.config.n_actions, (batch_size, window, 1)).float(),
-        f"{ACTION}_is_pad": torch.zeros(batch_size, window, dtype=torch.bool),
+        OBS_STATE: (torch.rand(batch_size, window, obs_dim, device=device) < 0.05).float(),
+        ACTION: torch.randint(0, policy.config.n_actions, (batch_size, window, 1), device=device).float(),
+        f"{ACTION}_is_pad": torch.zeros(batch_size, window, dtype=torch.bool, device=device),
         "task": [BENCH_TASKS[i % len(BENCH_TASKS)] for i in range(batch_size)],
     }
 
@@ -104,6 +106,12 @@ def torch_threads(threads: int) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
+def synchronize(device: str) -> None:
+    """Wait for the device's queued kernels, so that a wall-clock timing covers the work it launched."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def train_frames_per_second(policy: OCNPolicy, batch: dict, repeats: int = 3) -> float:
     """Frames per second of forward + backward: the fastest of `repeats` timed runs after a warm-up.
 
@@ -111,12 +119,15 @@ def train_frames_per_second(policy: OCNPolicy, batch: dict, repeats: int = 3) ->
     contention only ever slows a run down.
     """
     frames = batch[OBS_STATE].shape[0] * batch[OBS_STATE].shape[1]
+    device = policy.config.device
     times = []
     for run in range(repeats + 1):
         policy.zero_grad(set_to_none=True)
+        synchronize(device)
         begin = time.perf_counter()
         loss, _ = policy.forward(batch)
         loss.backward()
+        synchronize(device)
         if run:
             times.append(time.perf_counter() - begin)
     return frames / min(times)
@@ -129,13 +140,14 @@ def compare_stacked_vs_loop(
     hidden_size: int = 128,
     threads: int = 2,
     rounds: int = 3,
+    device: str = "cpu",
 ) -> dict[str, float]:
     """Training throughput of the stacked cells vs. the per-option loop, same weights and batch.
 
     The two are measured in alternation for `rounds` rounds so that both see the same load.
     """
     with torch_threads(threads):
-        stacked = make_bench_policy(n_options=n_options, hidden_size=hidden_size, window=window)
+        stacked = make_bench_policy(n_options=n_options, hidden_size=hidden_size, window=window, device=device)
         looped = use_looped_cells(copy.deepcopy(stacked))
         batch = random_batch(stacked, batch_size, window)
         best = {"stacked": 0.0, "loop": 0.0}
@@ -153,10 +165,12 @@ def select_action_latency(
     policy: OCNPolicy, batch_size: int = 1, steps: int = 200, threads: int = 1
 ) -> float:
     """Seconds per `select_action` call for `batch_size` envs (median over `steps` calls), made
-    under `torch.inference_mode` as `lerobot-eval` makes them."""
+    under `torch.inference_mode` as `lerobot-eval` makes them; on a GPU each call is timed until its
+    kernels finish."""
     obs_dim = policy.encoder.out_dim
+    device = policy.config.device
     observation = {
-        OBS_STATE: (torch.rand(batch_size, obs_dim) < 0.05).float(),
+        OBS_STATE: (torch.rand(batch_size, obs_dim, device=device) < 0.05).float(),
         "task": [policy.config.tasks[0]] * batch_size,
     }
     times = []
@@ -166,5 +180,6 @@ def select_action_latency(
         for _ in range(steps):
             begin = time.perf_counter()
             policy.select_action(observation)
+            synchronize(device)
             times.append(time.perf_counter() - begin)
     return statistics.median(times)
