@@ -917,3 +917,29 @@ def test_hil_switch_and_skill_length_are_saved_and_checked(tmp_path):
     assert OCNConfig(device="cpu").skill_length == 4 and make_policy().core.skill_length is None
     with pytest.raises(ValueError, match="skill_length must be >= 1, got 0"):
         OCNConfig(device="cpu", hierarchy="hil", skill_length=0)
+
+
+# ---- GPU -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (CI has none)")
+@pytest.mark.parametrize("action_type,action_dim", [("discrete", 1), ("continuous", 2)])
+def test_cuda_loss_gradients_and_parse_match_cpu(action_type: str, action_dim: int):
+    """The same weights and windows give the CPU's loss, gradients and parse on the GPU: nothing in
+    the recurrence, heads or penalties is created on the wrong device or silently cast."""
+    cpu = make_policy(action_type, action_dim, usage_balance=1.0, termination_cost=0.1)
+    gpu = make_policy(action_type, action_dim, usage_balance=1.0, termination_cost=0.1, device="cuda").to("cuda")
+    gpu.load_state_dict(cpu.state_dict())
+    batch = make_batch(action_dim=0 if action_type == "discrete" else action_dim)
+    on_gpu = {k: v.to("cuda") if torch.is_tensor(v) else v for k, v in batch.items()}
+    loss_cpu, _ = cpu.forward(batch)
+    loss_gpu, _ = gpu.forward(on_gpu)
+    loss_cpu.backward()
+    loss_gpu.backward()
+    torch.testing.assert_close(loss_gpu.cpu(), loss_cpu, rtol=1e-4, atol=1e-5)
+    for (name, p_cpu), p_gpu in zip(cpu.named_parameters(), gpu.parameters(), strict=True):
+        assert p_cpu.grad is not None, name
+        torch.testing.assert_close(p_gpu.grad.cpu(), p_cpu.grad, rtol=1e-3, atol=1e-5, msg=name)
+    parse_cpu, parse_gpu = cpu.parse(batch), gpu.parse(on_gpu)
+    for key in ("p_c", "end", "action_log_prob"):
+        torch.testing.assert_close(parse_gpu[key].cpu(), parse_cpu[key], rtol=1e-4, atol=1e-5, msg=key)
