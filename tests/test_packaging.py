@@ -14,6 +14,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 SOURCES = ["pyproject.toml", "README.md", "ocn_data", "envs", "policies", "tools", "datacards"]
+TEMPLATES = sorted(p.name for p in (REPO / "datacards").glob("*.md"))
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +22,7 @@ def unpacked_wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The project's wheel, built by setuptools' PEP 517 backend from a copy of the sources (so that
     the checkout gets no build/ or egg-info), unpacked as pip would lay it into site-packages."""
     work = tmp_path_factory.mktemp("wheel")
-    source, dist, site = work / "source", work / "dist", work / "site"
+    source, dist, installed = work / "source", work / "dist", work / "installed"
     source.mkdir()
     for name in SOURCES:
         origin = REPO / name
@@ -34,13 +35,13 @@ def unpacked_wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     assert done.returncode == 0, done.stderr[-2000:]
     wheel = dist / done.stdout.strip().splitlines()[-1]
     with zipfile.ZipFile(wheel) as archive:
-        archive.extractall(site)
-    return site
+        archive.extractall(installed)
+    return installed
 
 
 def test_wheel_ships_every_card_template(unpacked_wheel: Path) -> None:
     shipped = sorted(p.name for p in (unpacked_wheel / "datacards").glob("*.md"))
-    assert shipped == sorted(p.name for p in (REPO / "datacards").glob("*.md"))
+    assert shipped == TEMPLATES
 
 
 def test_installed_datacard_module_finds_its_templates(unpacked_wheel: Path) -> None:
@@ -59,4 +60,4 @@ def test_installed_datacard_module_finds_its_templates(unpacked_wheel: Path) -> 
     assert done.returncode == 0, done.stderr[-2000:]
     module_file, templates = done.stdout.strip().splitlines()
     assert Path(module_file).is_relative_to(unpacked_wheel)
-    assert templates == str(sorted(p.name for p in (REPO / "datacards").glob("*.md")))
+    assert templates == str(TEMPLATES)

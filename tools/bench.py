@@ -403,8 +403,9 @@ def bench_select_action(device: str = "cpu") -> dict[str, float]:
 
 
 def run_train_bench(args: argparse.Namespace) -> None:
+    device = accelerator(args.device)  # before any work: a missing GPU is a clear error, not a failed lerobot-train
     if args.only == "latency":
-        result = {"machine": machine(), "device": accelerator(args.device), "load_average": os.getloadavg(),
+        result = {"machine": machine(), "device": device, "load_average": os.getloadavg(),
                   "select_action_s": bench_select_action(args.device)}
         print(json.dumps(result, indent=2))
         return
@@ -430,7 +431,7 @@ def run_train_bench(args: argparse.Namespace) -> None:
     result = {
         "benchmark": "ocn-bench train",
         "machine": machine(),
-        "device": accelerator(args.device),
+        "device": device,
         "note": args.note,
         "train_rounds": args.train_rounds,
         "lerobot_train": full,
