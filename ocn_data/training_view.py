@@ -18,6 +18,7 @@ import fcntl
 import hashlib
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 from lerobot.utils.constants import DEFAULT_FEATURES
@@ -62,19 +63,34 @@ def training_view(root: Path, repo_id: str) -> Path:
     dropped = [name for name in features if name not in kept]
     if not dropped:
         return root
-    view, fingerprint = training_view_path(root), metadata_fingerprint(root)
-    marker = view / MARKER
-    # Reproductions run side by side (`ocn-reproduce --first-seed`) may ask at once: one writes, the others wait.
-    with open(view.parent / f"{view.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if marker.is_file() and json.loads(marker.read_text()).get("source_meta_sha256") == fingerprint:
-            return view
-        shutil.rmtree(view, ignore_errors=True)
+
+    def write(view: Path) -> None:
         print(f"writing the training view of {root} (without {', '.join(dropped)}) to {view}", flush=True)
         remove_feature(LeRobotDataset(repo_id, root=root), dropped, output_dir=view, repo_id=repo_id)
-        marker.write_text(json.dumps({"source": str(root), "source_meta_sha256": fingerprint, "dropped": dropped},
-                                     indent=2) + "\n")
+
+    return derived_dataset(root, training_view_path(root), {"dropped": dropped}, write)
+
+
+def derived_dataset(root: Path, view: Path, settings: dict, write: Callable[[Path], None]) -> Path:
+    """The dataset `write(view)` derives from the one at `root`, written unless `view` holds one made
+    from the same source metadata with the same `settings`; returns `view`.
+
+    Reproductions run side by side (`ocn-reproduce --first-seed`) may ask at once: one writes, the
+    others wait. The marker goes in last, so an interrupted write is redone."""
+    record = {"source": str(root), "source_meta_sha256": metadata_fingerprint(root), **settings}
+    marker = view / MARKER
+    with open(view.parent / f"{view.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if marker.is_file() and _same_derivation(json.loads(marker.read_text()), record):
+            return view
+        shutil.rmtree(view, ignore_errors=True)
+        write(view)
+        marker.write_text(json.dumps(record, indent=2) + "\n")
     return view
+
+
+def _same_derivation(made: dict, wanted: dict) -> bool:
+    return all(made.get(key) == value for key, value in wanted.items() if key != "source")
 
 
 def main(argv: list[str] | None = None) -> int:

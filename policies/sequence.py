@@ -3,8 +3,9 @@ fields and window plumbing of LeRobot's training loop, the masked loss, and a po
 LeRobot's constructor and the task table.
 
 Batches arrive as LeRobot builds them: `observation.state` [B, W, S] and `action` [B, W, A] windows
-with `*_is_pad` masks [B, W] and the task strings in `batch["task"]`. How a window becomes a
-training sequence is `SequenceConfig.window_start`'s business (see its docstring).
+with `*_is_pad` masks [B, W] and the task strings in `batch["task"]`, or from a packed view
+(`ocn_data.packed_view`) one row per episode. How a sample becomes a training sequence is
+`SequenceConfig.window_start`'s business (see its docstring).
 """
 
 from collections.abc import Sequence
@@ -22,11 +23,13 @@ from lerobot.optim import AdamConfig
 from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
+from ocn_data.packed_view import PACKED_ACTION, PACKED_KEYS, PACKED_LENGTH, PACKED_STATE
+
 # Encoders of Craft's compact state (see policies/ocn/encoders.py); "identity" takes float states as they are.
 CRAFT_ENCODERS = ("craft", "craft_full_view")
 OBS_ENCODERS = (*CRAFT_ENCODERS, "identity")
 ACTION_TYPES = ("discrete", "continuous")
-WINDOW_STARTS = ("episode", "any")
+WINDOW_STARTS = ("episode", "any", "packed")
 INFERENCE_MODES = ("sample", "greedy")
 LR_SCHEDULES = ("constant", "cosine")
 PAD_KEYS = (f"{ACTION}_is_pad", f"{OBS_STATE}_is_pad")
@@ -54,9 +57,15 @@ class SequenceConfig(PreTrainedConfig):
     - "any": the window is the `window_size` frames from the sampled frame on, and its first frame
       is treated as t = 1 of a fresh episode. Half the frames to load, but the model is told that a
       task restarts where it does not.
-    Both average the NLL over each window's real frames first, then over the windows that have
-    any: sampling windows at every frame weights an episode by its length, so this is the per-frame
-    mean NLL of the dataset in expectation.
+    - "packed": no windows; the dataset is a packed view (`python -m ocn_data.packed_view --width
+      window_size`), one row per episode holding all its frames, so LeRobot loads one row per sample
+      instead of a window of frames (several times faster, `results/bench_train.md`). For states and
+      actions that are not rescaled (Craft): the processors do not see the packed columns.
+    "episode" and "any" average the NLL over each window's real frames first, then over the windows
+    that have any: sampling windows at every frame weights an episode by its length, so this is the
+    per-frame mean NLL of the dataset in expectation. A packed view's rows are drawn uniformly, one
+    per episode, so "packed" averages over the batch's real frames (`batch_mean`): the same mean in
+    expectation.
 
     `skip_long_episodes` (with "episode" windows) trains on datasets whose rare longest episodes
     exceed `window_size` instead of refusing them: a window whose first position is a real frame
@@ -107,6 +116,14 @@ class SequenceConfig(PreTrainedConfig):
             raise ValueError(f"window_size must be >= 1, got {self.window_size}.")
         if not self.normalization_mapping:
             self.normalization_mapping = self._default_normalization()
+        rescaled = {name: mode for name, mode in self.normalization_mapping.items()
+                    if name in ("STATE", "ACTION") and mode is not NormalizationMode.IDENTITY}
+        if self.packed and rescaled:
+            raise ValueError(
+                f"window_start='packed' takes states and actions as stored, but this config rescales {rescaled}: "
+                "the processors normalise `observation.state` and `action`, not the packed columns. Train it "
+                "with window_start='episode'."
+            )
 
     def _default_normalization(self) -> dict[str, NormalizationMode]:
         """Craft states are symbolic ids and discrete actions are indices: neither may be rescaled."""
@@ -115,18 +132,25 @@ class SequenceConfig(PreTrainedConfig):
         return {"STATE": state, "ACTION": action}
 
     @property
-    def observation_delta_indices(self) -> list[int]:
+    def observation_delta_indices(self) -> list[int] | None:
+        if self.packed:
+            return None
         if self.window_start == "episode":
             return list(range(1 - self.window_size, self.window_size))
         return list(range(self.window_size))
 
     @property
-    def action_delta_indices(self) -> list[int]:
+    def action_delta_indices(self) -> list[int] | None:
         return self.observation_delta_indices
 
     @property
     def reward_delta_indices(self) -> None:
         return None
+
+    @property
+    def packed(self) -> bool:
+        """Whether the policy trains on a packed view (one row per episode) instead of windows."""
+        return self.window_start == "packed"
 
     @property
     def action_dim(self) -> int:
@@ -183,14 +207,24 @@ def prepare_config(config: SequenceConfig, dataset_meta: Any | None) -> dict[str
     """Check the config when a policy is built and return its task table (task string -> index).
 
     `dataset_meta` fills `config.tasks` when it is empty, so the saved config keeps them, and with
-    window_start="episode" its longest episode must fit in a window.
+    window_start="episode" its longest episode must fit in a window. A packed view's columns
+    (`ocn_data.packed_view`), which LeRobot takes for state inputs, leave the policy's features.
     """
+    packed_columns = set(PACKED_KEYS) & set(config.input_features or {})
+    if packed_columns and not config.packed:
+        raise ValueError(
+            f"{config.model_name} is built on a packed view (it has {sorted(packed_columns)}), whose episodes are "
+            "single rows: train it with --policy.window_start=packed, or on the recorded dataset."
+        )
+    config.input_features = {key: ft for key, ft in (config.input_features or {}).items() if key not in PACKED_KEYS}
     config.validate_features()
     name = config.model_name
     if not config.tasks and dataset_meta is not None:
         config.tasks = tasks_from_meta(dataset_meta)
     if not config.tasks:
         raise ValueError(f"{name} needs its task list: set `tasks` or build the policy from a dataset.")
+    if dataset_meta is not None and config.packed:
+        check_packed_width(config, dataset_meta.features)
     if dataset_meta is not None and config.window_start == "episode" and not config.skip_long_episodes:
         longest = max(episode_lengths(dataset_meta), default=0)
         if longest > config.window_size:
@@ -201,6 +235,22 @@ def prepare_config(config: SequenceConfig, dataset_meta: Any | None) -> dict[str
                 "or --policy.window_start=any."
             )
     return {task: i for i, task in enumerate(config.tasks)}
+
+
+def check_packed_width(config: SequenceConfig, features: dict[str, dict]) -> None:
+    """A packed view's rows must hold `window_size` frames of the policy's state."""
+    name = config.model_name
+    if PACKED_STATE not in features:
+        raise ValueError(
+            f"{name} with window_start='packed' trains on a packed view, made by `python -m ocn_data.packed_view "
+            f"--root DATASET --width {config.window_size}`; this dataset has no `{PACKED_STATE}` column."
+        )
+    width, state = features[PACKED_STATE]["shape"][0], config.state_dim
+    if width != config.window_size * state:
+        raise ValueError(
+            f"The packed view holds {width // state} frames per episode but window_size is {config.window_size}: "
+            f"set --policy.window_size={width // state} or pack the dataset with --width {config.window_size}."
+        )
 
 
 def frame_mask(batch: dict[str, Any]) -> Tensor:
@@ -233,6 +283,8 @@ def align_to_first_frame(valid: Tensor, length: int, *windows: Tensor) -> tuple[
 
 def training_windows(config: SequenceConfig, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
     """(mask [B, W], state [B, W, S], action [B, W, ...]) of sequences that each start at t = 1."""
+    if config.packed:
+        return trim_trailing_padding(*unpack_episodes(config, batch))
     valid = frame_mask(batch)
     if config.window_start == "any":
         windows = (valid, batch[OBS_STATE], batch[ACTION])
@@ -242,6 +294,19 @@ def training_windows(config: SequenceConfig, batch: dict[str, Any]) -> tuple[Ten
             valid = valid & ~valid[:, :1]
         windows = align_to_first_frame(valid, config.window_size, batch[OBS_STATE], batch[ACTION])
     return trim_trailing_padding(*windows)
+
+
+def unpack_episodes(config: SequenceConfig, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
+    """(mask [B, W], state [B, W, S], action [B, W, ...]) of a packed view's rows (`ocn_data.packed_view`),
+    shaped as LeRobot shapes windows: an action of one value per frame is [B, W]."""
+    length = batch[PACKED_LENGTH].reshape(-1, 1)
+    rows, width = length.shape[0], config.window_size
+    action = batch[PACKED_ACTION].reshape(rows, width, config.action_dim)
+    return (
+        torch.arange(width, device=length.device) < length,
+        batch[PACKED_STATE].reshape(rows, width, config.state_dim),
+        action.squeeze(-1) if config.action_dim == 1 else action,
+    )
 
 
 def trim_trailing_padding(mask: Tensor, *windows: Tensor) -> tuple[Tensor, ...]:
@@ -254,13 +319,23 @@ def trim_trailing_padding(mask: Tensor, *windows: Tensor) -> tuple[Tensor, ...]:
     return tuple(window[:, :used] for window in (mask, *windows))
 
 
+def batch_mean(per_window: Tensor, frames: Tensor, packed: bool) -> Tensor:
+    """The batch's loss from each window's loss [B], the window having `frames` [B] real frames:
+    windows sampled at every frame (window_start "episode" or "any") weigh the same, and windows
+    with no real frame (skipped long episodes) not at all; a packed view's episodes, drawn uniformly,
+    weigh by their frames. Either way an episode weighs by its length in expectation, as it did
+    when windows were sampled at its every frame."""
+    weight = frames.float() if packed else (frames > 0).float()
+    return (per_window * weight).sum() / weight.sum().clamp_min(1.0)
+
+
 def window_nll(
     log_prob: Tensor, mask: Tensor, reduction: str, after_first: dict[str, Tensor],
-    penalties: dict[str, tuple[float, Tensor]] | None = None,
+    penalties: dict[str, tuple[float, Tensor]] | None = None, packed: bool = False,
 ) -> tuple[Tensor, dict[str, float]]:
     """The training loss from log p(a_t) [B, T] of windows with real frames mask [B, T]: the NLL's
-    mean over each window's real frames, then over the windows that have any (skipped long-episode
-    windows have none; reduction "none": per window [B]).
+    mean over each window's real frames, then `batch_mean` over the windows (`packed`: of a packed
+    view; reduction "none": per window [B]).
 
     Stats: nll, frames_used, and the mean over real frames t > 1 of each `after_first` quantity
     (time-major [T, B], detached here): a model's per-step readout, meaningless at t = 1.
@@ -271,7 +346,7 @@ def window_nll(
     frames = mask.sum(1)
     per_window = (-log_prob * mask).sum(1) / frames.clamp_min(1.0)
     later = mask[:, 1:]
-    stats = {"nll": per_window.mean().item(), "frames_used": int(frames.sum().item())}
+    stats = {"nll": batch_mean(per_window, frames, packed).item(), "frames_used": int(frames.sum().item())}
     for name, (weight, value) in {**{name: (0.0, v) for name, v in after_first.items()}, **(penalties or {})}.items():
         sums = (value[1:].transpose(0, 1) * later).sum(1)
         stats[name] = float(sums.detach().sum() / later.sum().clamp_min(1.0))
@@ -279,7 +354,7 @@ def window_nll(
             per_window = per_window + weight * sums / later.sum(1).clamp_min(1.0)
     if reduction == "none":
         return per_window, stats
-    return per_window.sum() / (frames > 0).sum().clamp_min(1), stats
+    return batch_mean(per_window, frames, packed), stats
 
 
 class SequencePolicy:

@@ -127,6 +127,16 @@ def test_moe_trains_through_lerobot_train_and_reloads_as_moe(demos, tmp_path):
     assert torch.isfinite(loss) and stats["mean_end"] == 1.0
 
 
+def test_lerobot_train_on_the_packed_view_saves_a_policy_of_the_recorded_features(demos, tmp_path):
+    from ocn_data.packed_view import packed_view
+
+    checkpoint = train(packed_view(demos, REPO_ID, 24), tmp_path, "--policy.window_start=packed")
+    policy = OCNPolicy.from_pretrained(checkpoint)
+    assert policy.config.window_start == "packed" and set(policy.config.input_features) == {OBS_STATE}
+    batch = episode_batch(demos, 0)
+    assert policy.parse(batch)["p_c"].shape == (1, batch[OBS_STATE].shape[1], policy.config.n_options)
+
+
 def test_ocn_eval_scores_a_hil_checkpoint(trained, tmp_path):
     """A HIL checkpoint is an OCN checkpoint with `hierarchy="hil"` (same layout): the trained OCN's
     weights under HIL's schedule, saved with its processors, parse and roll out through ocn-eval."""

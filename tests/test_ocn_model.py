@@ -441,6 +441,26 @@ def test_trailing_padding_is_cut_without_changing_loss_or_gradients():
         torch.testing.assert_close(trimmed, reference)
 
 
+def test_projecting_only_real_frames_changes_no_output_read_and_no_gradient():
+    policy = make_policy(window_start="any")
+    batch = make_batch()
+    batch[f"{ACTION}_is_pad"][0, 3:] = batch[f"{ACTION}_is_pad"][2, 1:] = True
+    mask, state, action = training_windows(policy.config, batch)
+    results = []
+    for real in (None, mask):
+        policy.zero_grad(set_to_none=True)
+        out = policy._unroll(state, batch["task"], real)
+        log_prob = policy._action_log_prob(out, policy._component_log_prob(out, action))
+        (-(log_prob * mask).sum()).backward()
+        results.append((out, [p.grad.clone() for p in policy.parameters()]))
+    (every, every_grads), (only_real, real_grads) = results
+    time_major = mask.transpose(0, 1)
+    for field in ("p_c", "end", "weights"):
+        torch.testing.assert_close(getattr(only_real, field)[time_major], getattr(every, field)[time_major], msg=field)
+    for got, expected in zip(real_grads, every_grads, strict=True):
+        torch.testing.assert_close(got, expected)
+
+
 def test_any_windows_start_where_they_are_sampled():
     policy = make_policy(window_size=5, window_start="any")
     assert policy.config.observation_delta_indices == list(range(5))

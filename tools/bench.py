@@ -310,15 +310,17 @@ def _log_rates(log: str) -> list[dict[str, float]]:
     return rows
 
 
-def bench_lerobot_train(root: Path, steps: int, batch_size: int, workers: int, window: int, device: str) -> dict:
-    """A real `lerobot-train --policy.type=ocn` run on `root`; rates from its own step timings,
-    skipping the first logged interval (worker start-up)."""
+def bench_lerobot_train(root: Path, steps: int, batch_size: int, workers: int, window: int, device: str,
+                        packed: bool = False) -> dict:
+    """A real `lerobot-train --policy.type=ocn` run on `root` (`packed`: a packed view); rates from its
+    own step timings, skipping the first logged interval (worker start-up)."""
     with tempfile.TemporaryDirectory() as tmp:
         command = [
             console_script("lerobot-train"), "--policy.type=ocn", "--dataset.repo_id=local/craft_s1",
             f"--dataset.root={root}", f"--policy.device={device}", "--policy.push_to_hub=false", "--wandb.enable=false",
             "--env_eval_freq=0", f"--steps={steps}", f"--batch_size={batch_size}", f"--num_workers={workers}",
             "--log_freq=25", f"--save_freq={steps}", f"--policy.window_size={window}", f"--output_dir={tmp}/run",
+            *(["--policy.window_start=packed"] if packed else []),
         ]
         env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
         done = subprocess.run(command, check=True, capture_output=True, text=True, env=env)
@@ -340,16 +342,17 @@ def bench_lerobot_train(root: Path, steps: int, batch_size: int, workers: int, w
     }
 
 
-def bench_getitem(roots: list[Path], window: int, items: int = 300, rounds: int = 5) -> list[float]:
-    """Seconds per windowed `LeRobotDataset.__getitem__` with OCN's episode windows, for each dataset
-    (the same frames of each): interleaved, best of `rounds`, as the VM's speed drifts from minute
-    to minute."""
+def bench_getitem(roots: list[Path], window: int, packed: Path, items: int = 300, rounds: int = 5) -> list[float]:
+    """Seconds per `LeRobotDataset.__getitem__` of one training sample: a window of OCN's episode
+    windows for each of `roots`, one row of the `packed` view; interleaved, best of `rounds`, as the
+    VM's speed drifts from minute to minute."""
     from lerobot.datasets import LeRobotDataset
 
     offsets = [i / 10 for i in range(1 - window, window)]
     datasets = [LeRobotDataset("local/craft_s1", root=root,
                                delta_timestamps={"observation.state": offsets, "action": offsets}) for root in roots]
-    picks = np.random.default_rng(0).integers(0, len(datasets[0]), items)
+    datasets.append(LeRobotDataset("local/craft_s1", root=packed))
+    picks = np.random.default_rng(0).integers(0, min(len(ds) for ds in datasets), items)
     best = [float("inf")] * len(datasets)
     for _ in range(rounds):
         for k, ds in enumerate(datasets):
@@ -410,6 +413,7 @@ def run_train_bench(args: argparse.Namespace) -> None:
         print(json.dumps(result, indent=2))
         return
 
+    from ocn_data.packed_view import packed_view
     from ocn_data.training_view import training_view
     from policies.ocn.benchmark import compare_stacked_vs_loop
 
@@ -420,14 +424,15 @@ def run_train_bench(args: argparse.Namespace) -> None:
              "--episodes-per-task", "6000", "--root", str(root), "--repo-id", "local/craft_s1", "--seed", "0"],
             check=True, capture_output=True,
         )
-    view = training_view(root, "local/craft_s1")
-    # The recorded dataset and its training view in turn, best of `--train-rounds` runs each.
-    runs: dict[Path, list[dict]] = {root: [], view: []}
+    view, packed = training_view(root, "local/craft_s1"), packed_view(root, "local/craft_s1", args.window)
+    # The recorded dataset, its training view and its packed view in turn, best of `--train-rounds` runs each.
+    runs: dict[Path, list[dict]] = {root: [], view: [], packed: []}
     for _ in range(args.train_rounds):
         for data, done in runs.items():
-            done.append(bench_lerobot_train(data, args.steps, args.batch_size, args.workers, args.window, args.device))
-    full, lean = (max(done, key=lambda run: run["real_frames_per_s"]) for done in runs.values())
-    getitem, getitem_view = bench_getitem([root, view], args.window)
+            done.append(bench_lerobot_train(data, args.steps, args.batch_size, args.workers, args.window, args.device,
+                                            packed=data == packed))
+    full, lean, rows = (max(done, key=lambda run: run["real_frames_per_s"]) for done in runs.values())
+    getitem, getitem_view, getitem_packed = bench_getitem([root, view], args.window, packed)
     result = {
         "benchmark": "ocn-bench train",
         "machine": machine(),
@@ -436,8 +441,10 @@ def run_train_bench(args: argparse.Namespace) -> None:
         "train_rounds": args.train_rounds,
         "lerobot_train": full,
         "lerobot_train_view": lean,
+        "lerobot_train_packed": rows,
         "getitem_s_per_window": getitem,
         "getitem_view_s_per_window": getitem_view,
+        "getitem_packed_s_per_row": getitem_packed,
         # CPU threads only matter to a CPU update; a GPU one is measured once.
         "update_only": [bench_update(root, args.batch_size, args.window, t, args.device)
                         for t in ((1, 2) if args.device == "cpu" else (1,))],
@@ -481,6 +488,7 @@ def _lerobot_train_row(what: str, t: dict) -> str:
 def _train_markdown(r: dict) -> str:
     m, t, loop, sa = r["machine"], r["lerobot_train"], r["stacked_vs_loop"], r["select_action_s"]
     view, getitem, getitem_view = r["lerobot_train_view"], r["getitem_s_per_window"], r["getitem_view_s_per_window"]
+    packed, getitem_packed = r["lerobot_train_packed"], r["getitem_packed_s_per_row"]
     conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
     updates = "".join(
         f"| the same update alone on real S1 episodes, {u['threads']} thread(s) | "
@@ -497,11 +505,16 @@ def _train_markdown(r: dict) -> str:
         + _lerobot_train_row("S1's training view (`ocn_data.training_view`)", view)
         + f"| the training view's speed-up of `lerobot-train` (runs in turn, best of {r['train_rounds']} each) | "
         f"{view['real_frames_per_s'] / t['real_frames_per_s']:.2f}x |\n"
+        + _lerobot_train_row("S1's packed view (`ocn_data.packed_view`, `--policy.window_start=packed`)", packed)
+        + f"| the packed view's speed-up of `lerobot-train` over the training view (same runs) | "
+        f"{packed['real_frames_per_s'] / view['real_frames_per_s']:.2f}x |\n"
         f"{updates}"
         f"| LeRobot's windowed `__getitem__` (one episode window, {2 * t['window_size'] - 1} frames) | "
         f"{getitem * 1e3:.1f} ms per window |\n"
         f"| the same on the training view (the two interleaved, best of 5 each) | "
         f"{getitem_view * 1e3:.1f} ms per window ({getitem / getitem_view:.2f}x faster) |\n"
+        f"| the same for one row of the packed view (a whole episode) | {getitem_packed * 1e3:.2f} ms per row "
+        f"({getitem_view / getitem_packed:.1f}x faster than a window of the training view) |\n"
         f"| stacked options, forward + backward [512 x 32]{', 2 threads' if _on_cpu(r) else ''} | "
         f"{loop['stacked_frames_per_s']:,.0f} frames/s |\n"
         f"| per-option Python loop, same weights and batch | {loop['loop_frames_per_s']:,.0f} frames/s "
@@ -564,7 +577,8 @@ def main(argv: list[str] | None = None) -> None:
     train.add_argument("--workers", type=int, default=2, help="lerobot-train --num_workers")
     train.add_argument("--window", type=int, default=24, help="--policy.window_size")
     train.add_argument("--train-rounds", type=int, default=2,
-                       help="lerobot-train runs on the dataset and on its training view, in turn; the best of each counts")
+                       help="lerobot-train runs on the dataset, its training view and its packed view, in turn; "
+                            "the best of each counts")
     train.add_argument("--out", default=str(RESULTS / "bench_train.json"))
     train.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                        help="where lerobot-train and the timed updates run; data loading stays on the CPU")

@@ -42,7 +42,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn.encoders import make_encoder
 from policies.ocn.heads import make_action_head
-from policies.sequence import SequencePolicy, frame_mask, training_windows
+from policies.sequence import SequencePolicy, batch_mean, frame_mask, training_windows
 
 from .configuration_compile import CompILEConfig
 
@@ -261,7 +261,7 @@ class CompILEPolicy(SequencePolicy, PreTrainedPolicy):
         }
         if reduction == "none":
             return per_window * used, stats
-        return (per_window * used).sum() / windows, stats
+        return batch_mean(per_window, frames, self.config.packed), stats
 
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:

@@ -105,15 +105,16 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         self._state: OCNState | HardState | None = None
         self.last_step: StepReport | None = None
 
-    def _unroll(self, state: Tensor, tasks: Sequence[str]) -> StepOutput:
-        """Recurrence over windows [B, T, S] that each start an episode; outputs are time-major."""
+    def _unroll(self, state: Tensor, tasks: Sequence[str], real: Tensor | None = None) -> StepOutput:
+        """Recurrence over windows [B, T, S] that each start an episode; outputs are time-major.
+        `real` [B, T]: the frames whose outputs are read (None: all); the others' are arbitrary."""
         batch, steps = state.shape[:2]
         # Transpose the stored state rather than the (wider) features: the encoder then writes time-major.
         x = self.encoder(state.transpose(0, 1).contiguous())
         start = torch.zeros(steps, batch, dtype=torch.bool, device=state.device)
         start[0] = True
         initial = self.core.initial_state(self.task_index(tasks, batch))
-        return self.core.unroll(x, initial, start)[1]
+        return self.core.unroll(x, initial, start, None if real is None else real.transpose(0, 1))[1]
 
     def _component_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
         """log p_k(a_t) [T, 2N, B] of each mixture component, for time-major outputs and batch-major
@@ -132,19 +133,20 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
         mask, state, action = training_windows(self.config, batch)
-        out = self._unroll(state, batch["task"])
+        out = self._unroll(state, batch["task"], mask)
         penalties = {}
         if self.config.termination_cost:
             penalties["termination_penalty"] = (self.config.termination_cost, termination_penalty(self.config, out.end))
         component = self._component_log_prob(out, action)
-        loss, stats = window_nll(self._action_log_prob(out, component), mask, reduction, {"mean_end": out.end}, penalties)
+        loss, stats = window_nll(self._action_log_prob(out, component), mask, reduction, {"mean_end": out.end}, penalties,
+                                 packed=self.config.packed)
         imbalance = usage_imbalance(out.p_c, mask)
         stats["usage_imbalance"] = imbalance.item()
         if self.config.usage_balance:
             loss = loss + self.config.usage_balance * imbalance
         if self.config.expected_nll_weight:
             expected_lp = expected_log_prob(out.weights, component).transpose(0, 1)
-            expected, expected_stats = window_nll(expected_lp, mask, reduction, {})
+            expected, expected_stats = window_nll(expected_lp, mask, reduction, {}, packed=self.config.packed)
             stats["expected_nll"] = expected_stats["nll"]
             loss = loss + self.config.expected_nll_weight * expected
         return loss, stats

@@ -71,6 +71,13 @@ class HardStepOutput(NamedTuple):
     end: Tensor
 
 
+def scatter_frames(rows: Tensor, real: Tensor) -> Tensor:
+    """Per-module rows [N, R, d] of the R frames where `real` [T, B] holds, as [T, N, B, d] with zeros elsewhere."""
+    out = rows.new_zeros(*real.shape, rows.shape[0], rows.shape[-1])
+    out[real] = rows.transpose(0, 1)
+    return out.transpose(1, 2)
+
+
 class Projected(NamedTuple):
     """First-layer observation terms: controller [..., 1, B, d_mlp], options [..., N, B, d_mlp]."""
 
@@ -253,9 +260,16 @@ class OCNCore(nn.Module):
         params = torch.cat([continued.logits, restarted.logits], dim=0)
         return next_state, StepOutput(weights, params, next_state.p_c, end, option_end)
 
-    def unroll(self, x: Tensor, state: OCNState, start: Tensor) -> tuple[OCNState, StepOutput]:
-        """Run over time-major x [T, B, obs_dim] with `start` [T, B]; outputs are stacked over T."""
-        projected = self.project(x)
+    def project_frames(self, x: Tensor, real: Tensor) -> Projected:
+        """`project` of the real frames only (`real` [T, B]) of time-major x [T, B, obs_dim], zeros
+        elsewhere: training windows are mostly padding after their episode's end, whose outputs no
+        loss reads, and this matmul over every frame is the largest single cost of a training step."""
+        return Projected(*(scatter_frames(part, real) for part in self.project(x[real])))
+
+    def unroll(self, x: Tensor, state: OCNState, start: Tensor, real: Tensor | None = None) -> tuple[OCNState, StepOutput]:
+        """Run over time-major x [T, B, obs_dim] with `start` [T, B]; outputs are stacked over T.
+        `real` [T, B]: the frames whose outputs will be read (None: all); the others' are arbitrary."""
+        projected = self.project(x) if real is None else self.project_frames(x, real)
         # unbind, not indexing: indexing's backward would zero-fill the whole window at every step.
         steps = zip(projected.controller.unbind(0), projected.options.unbind(0), start.unbind(0), strict=True)
         outputs = []

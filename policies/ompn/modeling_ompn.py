@@ -105,7 +105,8 @@ class OMPNPolicy(SequencePolicy, PreTrainedPolicy):
         mask, state, action = training_windows(self.config, batch)
         out = self._unroll(state, mask, batch["task"])
         depth = expected_depth(out.expansion)
-        return window_nll(self._action_log_prob(out.params, action), mask, reduction, {"mean_depth": depth})
+        return window_nll(self._action_log_prob(out.params, action), mask, reduction, {"mean_depth": depth},
+                          packed=self.config.packed)
 
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:

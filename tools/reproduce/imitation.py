@@ -33,7 +33,8 @@ S1_REPO_ID = "local/craft_s1"
 # paper's constant lr and OMPN's observation). A run spells one out, and gets its own folder, only
 # when it differs from the default, so runs made before the option existed keep their command.
 STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": SequenceConfig.obs_encoder,
-                  "usage_balance": OCNConfig.usage_balance, "optimizer_lr": SequenceConfig.optimizer_lr}
+                  "usage_balance": OCNConfig.usage_balance, "optimizer_lr": SequenceConfig.optimizer_lr,
+                  "window_start": SequenceConfig.window_start}
 # The option-usage balance this study trains with unless told otherwise: without it, whether the
 # options split the subtasks within a run's steps is a matter of the run (README, results).
 STUDY_USAGE_BALANCE = 1.0
@@ -41,7 +42,7 @@ STUDY_USAGE_BALANCE = 1.0
 # when these match (`earlier_runs`).
 STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
               "lr_schedule", "obs_encoder", "usage_balance", "optimizer_lr", "rollouts", "settle_steps",
-              "settle_termination_cost")
+              "settle_termination_cost", "window_start")
 # What a results file written before the study settled its runs was made with.
 UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0}
 # The settling phase this study ends every run with unless told otherwise (`runs.Settling`).
@@ -213,7 +214,7 @@ def markdown(result: dict[str, Any]) -> str:
         f"rate {result['settings'].get('optimizer_lr', STUDY_DEFAULTS['optimizer_lr']):g}, controller learning-rate "
         f"scale {result['settings']['controller_lr_scale']}, option-usage balance "
         f"{result['settings'].get('usage_balance', STUDY_DEFAULTS['usage_balance'])}, observation encoder "
-        f"`{result['settings']['obs_encoder']}`; {settling_words(result['settings'])} (a run's train time "
+        f"`{result['settings']['obs_encoder']}`, {loading_words(result['settings'])}; {settling_words(result['settings'])} (a run's train time "
         "includes it); scores: `ocn-eval` "
         f"on the validation split "
         f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Runs finished: "
@@ -359,6 +360,13 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
     return result
 
 
+def loading_words(settings: dict[str, Any]) -> str:
+    """How the study's runs loaded their episodes."""
+    if settings.get("window_start", STUDY_DEFAULTS["window_start"]) == "packed":
+        return "episodes from the packed view (`ocn_data.packed_view`, drawn uniformly)"
+    return "episode windows from the training view (sampled at every frame)"
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """The `imitation-s1` subcommand."""
     s1 = sub.add_parser("imitation-s1", help="OCN imitation on S1 with the paper's ablations",
@@ -379,6 +387,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--obs-encoder", choices=CRAFT_ENCODERS, default=STUDY_DEFAULTS["obs_encoder"],
                     help="observation of every run: OMPN's features (the paper's) or the exact map (README, "
                          "observation encoders)")
+    s1.add_argument("--window-start", choices=("episode", "packed"), default=STUDY_DEFAULTS["window_start"],
+                    help="how lerobot-train loads episodes: LeRobot's windows, or one row per episode from the "
+                         "packed view (several times faster; README, the packed view)")
     s1.add_argument("--usage-balance", type=float, default=STUDY_USAGE_BALANCE,
                     help="weight of the option-usage balance term (OCNConfig.usage_balance; 0 is the paper's loss)")
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")

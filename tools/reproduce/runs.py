@@ -114,6 +114,22 @@ def train_command(
     return command + [f"--policy.{key}={value}" for key, value in {**settings.policy, **overrides}.items()]
 
 
+def training_data(settings: TrainSettings, data: Path, repo_id: str, overrides: dict[str, Any],
+                  init: Path | None) -> Path:
+    """The view of the dataset `data` that a run trains on: its packed view (`ocn_data.packed_view`) for
+    a policy with window_start "packed" (set here or in `init`'s config), else its training view
+    (`ocn_data.training_view`: the same windows as the recording, loaded faster)."""
+    from ocn_data.packed_view import packed_view
+    from ocn_data.training_view import training_view
+
+    window_start = {**settings.policy, **overrides}.get("window_start")
+    if window_start is None and init is not None:
+        window_start = json.loads((init / "config.json").read_text()).get("window_start")
+    if window_start == "packed":
+        return packed_view(data, repo_id, settings.window_size)
+    return training_view(data, repo_id)
+
+
 def split_argument(train: list[int], out: Path) -> str:
     """`--dataset.episodes=[...]` naming the train split; for a split too long for one argument (the
     60,000-demonstrations-per-task study lists 144,000 episodes), `--config_path` to a JSON beside `out`
@@ -133,10 +149,9 @@ def train_policy(
 ) -> TrainedRun:
     """Train one run into `run_dir/train` (or finish or reuse it) and return its last checkpoint;
     `init`: a pretrained_model to train on instead of a fresh policy. `lerobot-train` reads the
-    dataset's training view (`ocn_data.training_view`: the same windows, loaded faster)."""
-    from ocn_data.training_view import training_view
-
-    command = train_command(settings, training_view(data, repo_id), repo_id, run_dir / "train", seed, overrides, init)
+    dataset's view that the policy trains on (`training_data`)."""
+    source = training_data(settings, data, repo_id, overrides, init)
+    command = train_command(settings, source, repo_id, run_dir / "train", seed, overrides, init)
     shown = " ".join(["lerobot-train", *command[1:4], "--dataset.episodes=[<train split>]", *command[5:]])
     check_reusable(run_dir, shown)
     wall = train(settings, command, shown, run_dir)

@@ -1,0 +1,144 @@
+"""A copy of a recorded dataset with each episode packed into one row, for fast `lerobot-train` runs.
+
+A recurrent policy trained on whole episodes needs every frame of the sampled episode, and LeRobot's
+windowed `__getitem__` assembles a window frame by frame, formatting every column of each: about
+5 ms per window on S1's training view (`results/bench_train.md`), more than the model's update for a
+batch of 128 on 2 cores. In the packed view each episode is one frame whose extra columns hold the
+whole episode, padded to a fixed width: `observation.packed.state` [width * S],
+`observation.packed.action` [width * A] and `observation.packed.length` (the real frames), each in the
+smallest dtype that holds the data exactly. `lerobot-train` then loads one row per sample and the policy unpacks it
+(`--policy.window_start=packed`, `policies.sequence.training_windows`).
+
+The row keeps the episode's first `observation.state` and `action` (and the source's statistics of
+both), and the policy drops the packed columns from its features, so that its features, and hence its
+checkpoints, are those of the recorded dataset. LeRobot's processors pass the packed columns on without
+normalising them, so the view serves policies whose states and actions are not rescaled (Craft).
+
+Episodes, their indices, tasks and splits are the source's, so `--dataset.episodes` names the same
+train split. LeRobot's sampler then draws episodes uniformly instead of in proportion to their length
+(one row each): the loss is the mean NLL over the batch's real frames (`policies.sequence.batch_mean`),
+the same per-frame mean in expectation.
+
+`python -m ocn_data.packed_view --root DATASET [--width W]` makes (or checks) the view.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from lerobot.datasets.io_utils import load_stats, write_info, write_stats
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+from ocn_data.episodes import EpisodeChunk
+from ocn_data.episodes_table import load_episodes, read_info, split_episodes
+from ocn_data.lerobot_writer import ColumnarDatasetWriter
+from ocn_data.training_view import derived_dataset
+
+# Named as observations so that LeRobot's processors pass them to the policy, which drops them from its
+# features (`policies.sequence.prepare_config`): they are data layout, not inputs.
+PACKED_STATE = "observation.packed.state"
+PACKED_ACTION = "observation.packed.action"
+PACKED_LENGTH = "observation.packed.length"
+PACKED_KEYS = (PACKED_STATE, PACKED_ACTION, PACKED_LENGTH)
+# Episodes per data file of the view.
+CHUNK_EPISODES = 5000
+
+
+def packed_view_path(root: Path, width: int) -> Path:
+    """Where the view of the dataset at `root` packed to `width` frames lives: a sibling folder."""
+    root = Path(root)
+    return root.parent / f"{root.name}_packed{width}"
+
+
+def compact_dtype(values: np.ndarray) -> np.dtype:
+    """The smallest dtype that holds `values` exactly: unsigned or signed integers of 8 to 64 bits
+    for integer and boolean data, float32 for floats (LeRobot stores float features as float32)."""
+    if values.dtype.kind == "f":
+        return np.dtype(np.float32)
+    if values.size == 0:
+        return np.dtype(np.uint8)
+    low, high = int(values.min()), int(values.max())
+    for dtype in (np.uint8, np.int16, np.int32, np.int64):
+        info = np.iinfo(dtype)
+        if info.min <= low and high <= info.max:
+            return np.dtype(dtype)
+    raise ValueError(f"integer values from {low} to {high} do not fit in int64")
+
+
+def packed_features(source: dict, width: int, state: np.dtype, action: np.dtype) -> dict[str, dict]:
+    """The view's features: the source's state and action (one frame), and the packed columns."""
+    state_size = int(np.prod(source[OBS_STATE]["shape"]))
+    action_size = int(np.prod(source[ACTION]["shape"]))
+    return {
+        OBS_STATE: source[OBS_STATE],
+        ACTION: source[ACTION],
+        PACKED_STATE: {"dtype": state.name, "shape": [width * state_size], "names": None},
+        PACKED_ACTION: {"dtype": action.name, "shape": [width * action_size], "names": None},
+        PACKED_LENGTH: {"dtype": "int64", "shape": [1], "names": None},
+    }
+
+
+def write_packed(root: Path, repo_id: str, view: Path, width: int) -> None:
+    """Write the packed view of the dataset at `root` into the new folder `view`."""
+    info = read_info(root)
+    episodes = load_episodes(root, split_episodes(root, "all"))
+    longest = int(episodes.lengths.max())
+    if longest > width:
+        raise ValueError(f"{root} has episodes of up to {longest} frames; a packed view of width {width} cannot hold "
+                         f"them. Pass --width {longest} or more (and train with --policy.window_size equal to it).")
+    count, steps = episodes.state.shape[:2]
+    real = episodes.mask.reshape(count, steps, *([1] * (episodes.state.ndim - 2)))
+    state_dtype, action_dtype = compact_dtype(episodes.state[episodes.mask]), compact_dtype(episodes.action[episodes.mask])
+    state = np.zeros((count, width, *episodes.state.shape[2:]), state_dtype)
+    state[:, :steps] = np.where(real, episodes.state, 0)
+    action = np.zeros((count, width, *episodes.action.shape[2:]), action_dtype)
+    action[:, :steps] = np.where(real.reshape(count, steps, *([1] * (episodes.action.ndim - 2))), episodes.action, 0)
+    print(f"writing the packed view of {root} ({count} episodes, width {width}) to {view}", flush=True)
+    writer = ColumnarDatasetWriter(view, repo_id, info["fps"], packed_features(info["features"], width, state_dtype,
+                                   action_dtype), robot_type=info.get("robot_type"))
+    for start in range(0, count, CHUNK_EPISODES):
+        rows = slice(start, min(count, start + CHUNK_EPISODES))
+        n = rows.stop - rows.start
+        writer.write(EpisodeChunk(
+            lengths=np.ones(n, dtype=np.int64), tasks=episodes.tasks[rows], segments=[[] for _ in range(n)],
+            columns={
+                OBS_STATE: episodes.state[rows, 0],
+                ACTION: episodes.action[rows, 0],
+                PACKED_STATE: state[rows].reshape(n, -1),
+                PACKED_ACTION: action[rows].reshape(n, -1),
+                PACKED_LENGTH: episodes.lengths[rows, None].astype(np.int64),
+            },
+        ))
+    # The source's statistics of state and action (the view's own cover first frames only) and its splits.
+    stats = load_stats(view)
+    stats.update({key: load_stats(root)[key] for key in (OBS_STATE, ACTION)})
+    write_stats(stats, view)
+    view_info = writer.meta.info
+    view_info.splits = dict(info.get("splits") or {})
+    write_info(view_info, view)
+
+
+def packed_view(root: Path, repo_id: str, width: int) -> Path:
+    """The packed view of the dataset at `root`, made if missing or out of date; returns its root."""
+    root = Path(root)
+    return derived_dataset(root, packed_view_path(root, width), {"packed_width": width},
+                           lambda view: write_packed(root, repo_id, view, width))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m ocn_data.packed_view", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--root", type=Path, required=True, help="a LeRobot dataset written by record_demos")
+    parser.add_argument("--repo-id", default="local/craft", help="the dataset's repo id")
+    parser.add_argument("--width", type=int, required=True,
+                        help="frames per packed episode: the --policy.window_size to train with (at least the "
+                             "longest episode)")
+    args = parser.parse_args(argv)
+    print(packed_view(args.root, args.repo_id, args.width))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
