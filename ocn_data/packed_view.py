@@ -19,7 +19,7 @@ train split. LeRobot's sampler then draws episodes uniformly instead of in propo
 (one row each): the loss is the mean NLL over the batch's real frames (`policies.sequence.batch_mean`),
 the same per-frame mean in expectation.
 
-`python -m ocn_data.packed_view --root DATASET [--width W]` makes (or checks) the view.
+`python -m ocn_data.packed_view --root DATASET --width W` makes (or checks) the view.
 """
 
 from __future__ import annotations
@@ -67,6 +67,14 @@ def compact_dtype(values: np.ndarray) -> np.dtype:
     raise ValueError(f"integer values from {low} to {high} do not fit in int64")
 
 
+def pad_to_width(values: np.ndarray, mask: np.ndarray, width: int) -> np.ndarray:
+    """Episodes [E, T, ...] with real frames `mask` [E, T] as [E, width, ...] in `compact_dtype`, zeros after each end."""
+    real = mask.reshape(*mask.shape, *[1] * (values.ndim - 2))
+    padded = np.zeros((values.shape[0], width, *values.shape[2:]), compact_dtype(values[mask]))
+    padded[:, : values.shape[1]] = np.where(real, values, 0)
+    return padded
+
+
 def packed_features(source: dict, width: int, state: np.dtype, action: np.dtype) -> dict[str, dict]:
     """The view's features: the source's state and action (one frame), and the packed columns."""
     state_size = int(np.prod(source[OBS_STATE]["shape"]))
@@ -88,16 +96,11 @@ def write_packed(root: Path, repo_id: str, view: Path, width: int) -> None:
     if longest > width:
         raise ValueError(f"{root} has episodes of up to {longest} frames; a packed view of width {width} cannot hold "
                          f"them. Pass --width {longest} or more (and train with --policy.window_size equal to it).")
-    count, steps = episodes.state.shape[:2]
-    real = episodes.mask.reshape(count, steps, *([1] * (episodes.state.ndim - 2)))
-    state_dtype, action_dtype = compact_dtype(episodes.state[episodes.mask]), compact_dtype(episodes.action[episodes.mask])
-    state = np.zeros((count, width, *episodes.state.shape[2:]), state_dtype)
-    state[:, :steps] = np.where(real, episodes.state, 0)
-    action = np.zeros((count, width, *episodes.action.shape[2:]), action_dtype)
-    action[:, :steps] = np.where(real.reshape(count, steps, *([1] * (episodes.action.ndim - 2))), episodes.action, 0)
+    count = len(episodes.lengths)
+    state, action = (pad_to_width(values, episodes.mask, width) for values in (episodes.state, episodes.action))
     print(f"writing the packed view of {root} ({count} episodes, width {width}) to {view}", flush=True)
-    writer = ColumnarDatasetWriter(view, repo_id, info["fps"], packed_features(info["features"], width, state_dtype,
-                                   action_dtype), robot_type=info.get("robot_type"))
+    writer = ColumnarDatasetWriter(view, repo_id, info["fps"], packed_features(info["features"], width, state.dtype,
+                                   action.dtype), robot_type=info.get("robot_type"))
     for start in range(0, count, CHUNK_EPISODES):
         rows = slice(start, min(count, start + CHUNK_EPISODES))
         n = rows.stop - rows.start
@@ -112,8 +115,8 @@ def write_packed(root: Path, repo_id: str, view: Path, width: int) -> None:
             },
         ))
     # The source's statistics of state and action (the view's own cover first frames only) and its splits.
-    stats = load_stats(view)
-    stats.update({key: load_stats(root)[key] for key in (OBS_STATE, ACTION)})
+    stats, source_stats = load_stats(view), load_stats(root)
+    stats.update({key: source_stats[key] for key in (OBS_STATE, ACTION)})
     write_stats(stats, view)
     view_info = writer.meta.info
     view_info.splits = dict(info.get("splits") or {})
