@@ -203,3 +203,37 @@ def test_ompn_is_cloned_with_its_own_defaults_finetuned_whole_in_s1_only_and_che
     with pytest.raises(SystemExit, match="OMPN cannot pool the skills of several cloned models"):
         main(["s2", "--methods", "ocn,ompn", "--workdir", str(tmp_path / "work"), "--results", str(tmp_path / "r")])
     assert not (tmp_path / "work").exists()
+
+
+def test_packed_clones_load_the_packed_view_in_folders_of_their_own_and_share_imitations_run(tmp_path):
+    import argparse
+
+    from tools.reproduce import dial, finetune, imitation, parsing
+
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    for module in (imitation, parsing, dial):
+        module.add_parser(sub)
+    finetune.add_parsers(sub)
+
+    def parsed(*words: str) -> argparse.Namespace:
+        return parser.parse_args([*words, "--workdir", str(tmp_path), "--usage-balance", "1.0"])
+
+    methods = {method.key: method for method in METHODS}
+    packed, windows = parsed("s2", "--window-start", "packed"), parsed("s2")
+    for key in ("ocn", "moe", "hil", "compile"):
+        assert finetune.clone_settings(packed, SETTINGS["s2"], methods[key])[1]["window_start"] == "packed"
+        assert "window_start" not in finetune.clone_settings(windows, SETTINGS["s2"], methods[key])[1]
+    assert finetune.clone_dir(packed, SETTINGS["s2"], methods["moe"], "craft_s2_ab", 1) == (
+        tmp_path / "clone" / "craft_s2_ab" / "moe_usage_balance1.0_packed" / "seed1")
+    assert finetune.clone_dir(packed, SETTINGS["s2"], methods["compile"], "craft_s2_ab", 1).parent.name == "compile_packed"
+    assert finetune.clone_dir(windows, SETTINGS["s2"], methods["moe"], "craft_s2_ab", 1).parent.name == "moe_usage_balance1.0"
+    assert finetune.clone_study_suffix(packed, methods["flat"]) == ""
+
+    # S1's OCN clone is the run that imitation-s1 trains under the same balance and loading.
+    study = parsed("imitation-s1", "--window-start", "packed")
+    shared = imitation.run_dir(tmp_path, imitation.VARIANTS[0], 1, imitation.study_overrides(study))
+    assert finetune.clone_dir(parsed("s1", "--window-start", "packed"), SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
+    assert shared.parent.name == "3options_T10_usage_balance1.0_packed"
+    assert parsing.run_dir(parsed("parsing-s1", "--window-start", "packed"), methods["ompn"], 1).parent.name == "ompn_packed"
+    assert not hasattr(parsed("dial"), "window_start")  # Dial's rescaled states keep windows

@@ -73,7 +73,7 @@ def dial_data(args: argparse.Namespace) -> Path:
 
 
 def clone_dir(args: argparse.Namespace, method: Method, seed: int) -> Path:
-    return args.workdir / "clone" / DATA / f"{method.key}{finetune.balance_suffix(args, method)}" / f"seed{seed}"
+    return args.workdir / "clone" / DATA / f"{method.key}{finetune.clone_study_suffix(args, method)}" / f"seed{seed}"
 
 
 def clone(args: argparse.Namespace, data: Path, method: Method, seed: int) -> TrainedRun:

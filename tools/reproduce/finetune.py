@@ -89,9 +89,10 @@ def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -
     """
     settings = imitation.train_settings(args)
     if method.policy_type != "ocn":
-        return replace(settings, policy={}, policy_type=method.policy_type), dict(method.overrides or {})
+        return (replace(settings, policy={}, policy_type=method.policy_type),
+                {**(method.overrides or {}), **loading_override(args)})
     return settings, {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {}),
-                      **balance_override(args)}
+                      **balance_override(args), **loading_override(args)}
 
 
 def balance_override(args: argparse.Namespace) -> dict[str, float]:
@@ -100,11 +101,22 @@ def balance_override(args: argparse.Namespace) -> dict[str, float]:
     return {"usage_balance": args.usage_balance} if args.usage_balance else {}
 
 
-def balance_suffix(args: argparse.Namespace, method: Method) -> str:
-    """Folder-name suffix of an OCN-family method's runs over balanced clones, named as the imitation
-    study names its folders, so that they live beside the paper-loss ones (others: none)."""
-    ocn_family = method.policy_type == "ocn" and method.overrides is not None
-    return imitation.settings_suffix(balance_override(args)) if ocn_family else ""
+def loading_override(args: argparse.Namespace) -> dict[str, str]:
+    """`--policy.window_start` of every clone, spelled out only for the packed view (`--window-start
+    packed`), so that runs made before the option existed keep their command. Studies without the
+    option (Dial, whose rescaled states the packed view cannot take) load windows."""
+    start = getattr(args, "window_start", imitation.STUDY_DEFAULTS["window_start"])
+    return {} if start == imitation.STUDY_DEFAULTS["window_start"] else {"window_start": start}
+
+
+def clone_study_suffix(args: argparse.Namespace, method: Method) -> str:
+    """Folder-name suffix of a method's runs over clones made under non-default study settings (the
+    usage balance of the OCN family, the packed view of any clone), named as the imitation study names
+    its folders, so that they live beside the default ones (flat PPO, which clones nothing: none)."""
+    if method.overrides is None:
+        return ""
+    balance = balance_override(args) if method.policy_type == "ocn" else {}
+    return imitation.settings_suffix({**balance, **loading_override(args)})
 
 
 def clone_settling(args: argparse.Namespace, method: Method) -> Settling | None:
@@ -118,7 +130,7 @@ def clone_suffix(args: argparse.Namespace, method: Method) -> str:
     settling phase, so that runs over differently made clones live side by side."""
     settling = clone_settling(args, method)
     settle = {} if settling is None else {"settle_steps": settling.steps, "settle_cost": settling.termination_cost}
-    return balance_suffix(args, method) + imitation.settings_suffix(settle)
+    return clone_study_suffix(args, method) + imitation.settings_suffix(settle)
 
 
 def budget_suffix(args: argparse.Namespace) -> str:
@@ -127,22 +139,25 @@ def budget_suffix(args: argparse.Namespace) -> str:
     return "" if args.frames == args.default_frames else imitation.settings_suffix({"frames": args.frames})
 
 
-def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
-    """The method's behaviour-cloned checkpoints for one seed, one per demonstration set.
+def clone_dir(args: argparse.Namespace, setting: Setting, method: Method, folder: str, seed: int) -> Path:
+    """Where the method's clone of one demonstration set trains. S1's OCN is the imitation study's
+    main variant under the same usage balance and loading (`imitation-s1 --usage-balance W
+    --window-start S`), so both reproductions share those runs, and their settling phase too."""
+    if setting.name == "s1" and method.name == "OCN":
+        return imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed,
+                                 {**balance_override(args), **loading_override(args)})
+    return args.workdir / "clone" / folder / f"{method.key}{clone_study_suffix(args, method)}" / f"seed{seed}"
 
-    S1's OCN is the imitation study's main variant at the same usage balance (`imitation-s1
-    --usage-balance W`), so both reproductions share those runs, and their settling phase too when
-    `--settle-steps` asks for one (OCN only: MoE and HIL have no terminations to settle).
-    """
+
+def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int) -> list[TrainedRun]:
+    """The method's behaviour-cloned checkpoints for one seed, one per demonstration set (`clone_dir`),
+    settled when `--settle-steps` asks for it (OCN only: MoE and HIL have no terminations to settle)."""
     settings, overrides = clone_settings(args, setting, method)
     runs = []
     for folder, tasks in setting.demos:
         data = args.workdir / folder
         record_dataset(data, tasks, f"local/{folder}", args.episodes_per_task, args.data_seed)
-        if setting.name == "s1" and method.name == "OCN":
-            run_dir = imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed, balance_override(args))
-        else:
-            run_dir = args.workdir / "clone" / folder / f"{method.key}{balance_suffix(args, method)}" / f"seed{seed}"
+        run_dir = clone_dir(args, setting, method, folder, seed)
         run = train_policy(settings, data, f"local/{folder}", run_dir, seed, overrides)
         settling = clone_settling(args, method)
         if settling is not None:
@@ -327,7 +342,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
         f"{setting.n_options} options per cloned model{skills_note}, cloned by "
-        f"`lerobot-train` (OCN-family clones' option-usage balance {result['settings'].get('usage_balance', 0.0)}; "
+        f"`lerobot-train` on {imitation.loading_words(result['settings'])} "
+        f"(OCN-family clones' option-usage balance {result['settings'].get('usage_balance', 0.0)}; "
         f"OCN's: {imitation.settling_words(result['settings'])}); PPO through `ocn-finetune`, "
         f"{result['settings']['frames']} env frames per run, {result['settings']['envs']} envs. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
@@ -449,6 +465,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         runnable = tuple(method for method in METHODS if method.pools or len(setting.demos) == 1)
         add_finetune_arguments(parser, runnable, 300_000)
         imitation.add_training_arguments(parser)
+        imitation.add_window_start_argument(parser)
         imitation.add_settling_arguments(parser, 0, "OCN's clones (as imitation-s1's, which settles by default)")
         parser.add_argument("--results", type=Path, default=RESULTS)
         parser.set_defaults(func=reproduce)

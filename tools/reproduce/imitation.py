@@ -387,15 +387,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--obs-encoder", choices=CRAFT_ENCODERS, default=STUDY_DEFAULTS["obs_encoder"],
                     help="observation of every run: OMPN's features (the paper's) or the exact map (README, "
                          "observation encoders)")
-    s1.add_argument("--window-start", choices=("episode", "packed"), default=STUDY_DEFAULTS["window_start"],
-                    help="how lerobot-train loads episodes: LeRobot's windows, or one row per episode from the "
-                         "packed view (several times faster; README, the packed view)")
+    add_window_start_argument(s1)
     s1.add_argument("--usage-balance", type=float, default=STUDY_USAGE_BALANCE,
                     help="weight of the option-usage balance term (OCNConfig.usage_balance; 0 is the paper's loss)")
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
     s1.set_defaults(func=imitation_s1)
+
+
+def add_window_start_argument(parser: argparse.ArgumentParser) -> None:
+    """`--window-start` of the Craft studies that train with `lerobot-train` (`--policy.window_start`)."""
+    parser.add_argument("--window-start", choices=("episode", "packed"), default=STUDY_DEFAULTS["window_start"],
+                        help="how lerobot-train loads episodes: LeRobot's windows, or one row per episode from the "
+                             "packed view (several times faster; README, the packed view)")
 
 
 def add_settling_arguments(parser: argparse.ArgumentParser, steps: int, which: str) -> None:

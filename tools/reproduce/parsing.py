@@ -96,7 +96,7 @@ def method_settings(args: argparse.Namespace, method: Method) -> tuple[TrainSett
 def run_dir(args: argparse.Namespace, method: Method, seed: int) -> Path:
     """Where one method's seed trains and keeps its scores: this study's own, since imitation-s1 and
     s1 keep too few checkpoints to draw a curve from (OCN-family runs under the usage balance apart)."""
-    return args.workdir / "parsing_s1" / f"{method.key}{finetune.balance_suffix(args, method)}" / f"seed{seed}"
+    return args.workdir / "parsing_s1" / f"{method.key}{finetune.clone_study_suffix(args, method)}" / f"seed{seed}"
 
 
 def scored_steps(steps: int, every: int) -> list[int]:
@@ -285,7 +285,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {machine['cpu']} ({machine['cores']} cores, Python {machine['python']}), "
         f"{result['date']}. Every method trained by `lerobot-train` on the S1 train split for {settings['steps']} "
         f"steps "
-        f"of {settings['batch_size']} episode windows (window {settings['window_size']}), a checkpoint every "
+        f"of {settings['batch_size']} {imitation.loading_words(settings)} (window {settings['window_size']}), a "
+        f"checkpoint every "
         f"{settings['eval_every']} steps; each checkpoint's parse of the {result['val_episodes']} validation episodes "
         f"scored with the shared metrics (`tools.episode_parsing`), no env rollouts. Runs finished: "
         f"{result['runs_finished']} of {result['runs_planned']}; wall time of this invocation "
@@ -402,6 +403,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         help="lerobot-train steps between saved checkpoints (its --save_freq); each is scored, and "
                              "the last step always is")
     imitation.add_training_arguments(parser)
+    imitation.add_window_start_argument(parser)
     finetune.add_usage_balance_argument(parser)
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of parsing_s1.{json,md,png}")
     parser.set_defaults(func=parsing_s1)
