@@ -87,12 +87,11 @@ def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -
     of width 128, lr 1e-3, gradient clip 0.2) on the same data, steps, batch and windows, without
     OCN's controller learning-rate scale, which they have no use for.
     """
-    settings = imitation.train_settings(args)
+    settings, loading = imitation.train_settings(args), loading_override(args)
     if method.policy_type != "ocn":
-        return (replace(settings, policy={}, policy_type=method.policy_type),
-                {**(method.overrides or {}), **loading_override(args)})
+        return replace(settings, policy={}, policy_type=method.policy_type), {**(method.overrides or {}), **loading}
     return settings, {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {}),
-                      **balance_override(args), **loading_override(args)}
+                      **balance_override(args), **loading}
 
 
 def balance_override(args: argparse.Namespace) -> dict[str, float]:

@@ -284,10 +284,8 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         f"Written by `{result['command']}` on {machine['cpu']} ({machine['cores']} cores, Python {machine['python']}), "
         f"{result['date']}. Every method trained by `lerobot-train` on the S1 train split for {settings['steps']} "
-        f"steps "
-        f"of {settings['batch_size']} {imitation.loading_words(settings)} (window {settings['window_size']}), a "
-        f"checkpoint every "
-        f"{settings['eval_every']} steps; each checkpoint's parse of the {result['val_episodes']} validation episodes "
+        f"steps of {settings['batch_size']} {imitation.loading_words(settings)} (window {settings['window_size']}), "
+        f"a checkpoint every {settings['eval_every']} steps; each checkpoint's parse of the {result['val_episodes']} validation episodes "
         f"scored with the shared metrics (`tools.episode_parsing`), no env rollouts. Runs finished: "
         f"{result['runs_finished']} of {result['runs_planned']}; wall time of this invocation "
         f"{result['wall_s'] / 60:.1f} min (runs finished before it were reused).",
