@@ -2,13 +2,18 @@
 
 Tasks are queued interleaved (AC, CD, DA, AC, ...) so any prefix of the recording, and so the
 validation split at its end, holds every task equally.
+
+DART noise (Laskey et al. 2017), off by default: with probability `dart_noise` per step the env
+executes a uniformly drawn action instead of the expert's, while the dataset keeps the expert's
+action as the label. The demonstrations then visit states just off the expert's path, each labelled
+with the way back, which a cloned policy needs once its own small errors take it there.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from envs.craft import CraftBatch, CraftExpert
+from envs.craft import N_ACTIONS, CraftBatch, CraftExpert
 from envs.craft.observation import OBS_DIM, OBS_NAMES
 from envs.craft.render import render_batch
 from envs.craft.world import SUBTASK_NAMES, default_max_steps, task_description
@@ -51,10 +56,17 @@ class CraftRecorder(ExpertRecorder):
         batch_size: int = 256,
         video: bool = False,
         max_failures: int = 1000,
+        dart_noise: float = 0.0,
     ) -> None:
+        if not 0.0 <= dart_noise < 1.0:
+            raise ValueError(f"dart_noise must be in [0, 1), got {dart_noise}")
         queue = [task for _ in range(episodes_per_task) for task in tasks]
         batch = CraftBatch(max(1, min(batch_size, len(queue))), mode=mode, reward=reward)
         self.expert = CraftExpert(batch)
+        self.dart_noise = dart_noise
+        # One generator per env slot, seeded by its episode's seed: an episode's noise does not
+        # depend on which slot or batch it was recorded in.
+        self._noise: list[np.random.Generator | None] = [None] * batch.num_envs
         horizon = max(default_max_steps(len(t)) for t in tasks)
         super().__init__(
             queue, batch, craft_features(), horizon,
@@ -63,10 +75,19 @@ class CraftRecorder(ExpertRecorder):
 
     def _reset(self, slots: np.ndarray, seeds: list[int], tasks: list[tuple[int, ...]]) -> None:
         self.batch.reset(seeds=seeds, tasks=tasks, env_ids=slots)
+        for slot, seed in zip(slots.tolist(), seeds, strict=True):
+            self._noise[slot] = np.random.default_rng(seed)
 
     def _act(self) -> tuple[np.ndarray, np.ndarray]:
         action = self.expert.act()
-        return action, action
+        if not self.dart_noise:
+            return action, action
+        executed = action.copy()
+        for slot in np.flatnonzero(self.active).tolist():
+            rng = self._noise[slot]
+            if rng.random() < self.dart_noise:
+                executed[slot] = rng.integers(N_ACTIONS)
+        return action, executed
 
     def _describe(self, task: tuple[int, ...]) -> str:
         return task_description(task)

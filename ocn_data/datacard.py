@@ -94,6 +94,7 @@ def craft_card_context(root: str | Path, repo_id: str) -> dict:
     image = context["info"]["features"].get(IMAGE_KEY)
     return context | {
         "mode": context["session"]["mode"],
+        "dart_noise": context["session"].get("dart_noise", 0.0),
         "image_shape": tuple(image["shape"]) if image else None,
         "obs_dim": OBS_DIM,
         "obs_layout": craft_observation_layout(),

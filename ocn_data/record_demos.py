@@ -55,6 +55,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reward", choices=REWARDS, default="dense")
     p.add_argument("--mode", choices=MODES, help="Craft: the paper's 4 resources or the full recipe book (default paper)")
     p.add_argument("--mcap", type=Path, help="also write every step to this MCAP file (must not exist)")
+    p.add_argument(
+        "--dart-noise",
+        type=float,
+        default=0.0,
+        help="Craft: probability per step that the env executes a random action instead of the expert's, "
+        "which stays the recorded label (DART; 0: the expert's own path). Dial draws its own noise",
+    )
     p.add_argument("--video", action="store_true", help="Craft: also store rendered frames as the video feature observation.image")
     p.add_argument(
         "--subtask-annotations",
@@ -90,12 +97,12 @@ def _craft_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable
     tasks = parse_task_list(args.tasks, mode)
     episodes_per_task = _positive(args.episodes_per_task, "--episodes-per-task")
     image_shape = (GRID_SIZE * TILE, GRID_SIZE * TILE, 3) if args.video else None
-    session = {"mode": mode, "tasks": [task_description(t) for t in tasks]}
+    session = {"mode": mode, "tasks": [task_description(t) for t in tasks], "dart_noise": args.dart_noise}
 
     def make() -> ExpertRecorder:
         return CraftRecorder(
             tasks, episodes_per_task, mode=mode, reward=args.reward, seed=args.seed, first_attempt=first_attempt,
-            batch_size=args.batch_size or (16 if args.video else 256), video=args.video,
+            batch_size=args.batch_size or (16 if args.video else 256), video=args.video, dart_noise=args.dart_noise,
         )
 
     return make, craft_features(image_shape), CRAFT_FPS, session
@@ -103,8 +110,8 @@ def _craft_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable
 
 def _dial_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable[[], ExpertRecorder], dict, int, dict]:
     """Dial's recorder maker, features, fps and session record: given PINs, or random ones."""
-    if args.video or args.mode:
-        raise ValueError("--video and --mode are Craft options; Dial records states only")
+    if args.video or args.mode or args.dart_noise:
+        raise ValueError("--video, --mode and --dart-noise are Craft options; Dial records states only, with noise of its own")
     digits = parse_digits(args.digits)
     if args.tasks is not None:
         if args.episodes is not None:

@@ -19,7 +19,7 @@ from envs.craft.observation import OBS_DIM as CRAFT_STATE_DIM
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.configs.types import FeatureType
 from lerobot.datasets.io_utils import load_episodes
-from lerobot.optim import AdamConfig
+from lerobot.optim import AdamConfig, AdamWConfig
 from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
@@ -97,6 +97,8 @@ class SequenceConfig(PreTrainedConfig):
 
     optimizer_lr: float = 1e-3
     optimizer_grad_clip_norm: float = 10.0
+    # Decoupled weight decay (AdamW); 0 is the paper's plain Adam.
+    optimizer_weight_decay: float = 0.0
     # "constant" is the paper's Adam at a fixed lr; "cosine" anneals every parameter group's lr to 0
     # over `lerobot-train --steps` (no warm-up). On S1, cosine from step 0 keeps OCN's options from
     # splitting (results/imitation_s1_lr_schedule): use it to continue a trained model, if at all.
@@ -114,6 +116,8 @@ class SequenceConfig(PreTrainedConfig):
         check_choice("lr_schedule", self.lr_schedule, LR_SCHEDULES)
         if self.window_size < 1:
             raise ValueError(f"window_size must be >= 1, got {self.window_size}.")
+        if self.optimizer_weight_decay < 0:
+            raise ValueError(f"optimizer_weight_decay must be >= 0, got {self.optimizer_weight_decay}.")
         if not self.normalization_mapping:
             self.normalization_mapping = self._default_normalization()
         rescaled = {name: mode for name, mode in self.normalization_mapping.items()
@@ -161,7 +165,13 @@ class SequenceConfig(PreTrainedConfig):
     def state_dim(self) -> int:
         return self.input_features[OBS_STATE].shape[0]
 
-    def get_optimizer_preset(self) -> AdamConfig:
+    def get_optimizer_preset(self) -> AdamConfig | AdamWConfig:
+        if self.optimizer_weight_decay:
+            return AdamWConfig(
+                lr=self.optimizer_lr,
+                weight_decay=self.optimizer_weight_decay,
+                grad_clip_norm=self.optimizer_grad_clip_norm,
+            )
         return AdamConfig(lr=self.optimizer_lr, grad_clip_norm=self.optimizer_grad_clip_norm)
 
     def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:

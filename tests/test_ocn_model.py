@@ -768,6 +768,24 @@ def test_optimizer_groups_slow_the_controller_only():
     assert [group["lr"] for group in optimizer.param_groups] == pytest.approx([1e-3, 1e-4])
 
 
+def test_weight_decay_makes_the_preset_adamw_whose_step_shrinks_every_weight_by_lr_times_decay():
+    assert make_policy().config.get_optimizer_preset().type == "adam"
+    policy = make_policy(controller_lr_scale=0.1, optimizer_weight_decay=0.5)
+    preset = policy.config.get_optimizer_preset()
+    assert (preset.type, preset.weight_decay, preset.grad_clip_norm) == ("adamw", 0.5, 10.0)
+    optimizer = preset.build(policy.get_optim_params())
+    before = {name: p.detach().clone() for name, p in policy.named_parameters()}
+    for p in policy.parameters():
+        p.grad = torch.zeros_like(p)  # no gradient: only the decoupled decay moves a weight
+    optimizer.step()
+    controller = {id(p) for p in policy.get_optim_params()[1]["params"]}
+    for name, p in policy.named_parameters():
+        lr = 1e-4 if id(p) in controller else 1e-3
+        torch.testing.assert_close(p.detach(), before[name] * (1 - lr * 0.5))
+    with pytest.raises(ValueError, match="optimizer_weight_decay must be >= 0, got -0.1"):
+        make_policy(optimizer_weight_decay=-0.1)
+
+
 def test_cosine_schedule_anneals_every_group_to_zero_keeping_the_controller_slower():
     assert make_policy().config.get_scheduler_preset() is None
     policy = make_policy(controller_lr_scale=0.1, lr_schedule="cosine")

@@ -187,6 +187,43 @@ def test_interrupted_recording_keeps_finished_episodes(tmp_path):
     assert ds.meta.info.total_episodes == ds.num_episodes == len(ds.meta.episodes)
 
 
+def test_dart_noise_executes_random_actions_but_records_the_experts():
+    from envs.craft import CraftExpert
+    from ocn_data.craft_recorder import CraftRecorder
+
+    def recorder(noise: float) -> CraftRecorder:
+        return CraftRecorder([(0, 2), (2, 3)], 200, seed=5, batch_size=400, dart_noise=noise)
+
+    noisy, again, quiet = recorder(0.3), recorder(0.3), recorder(0.0)
+    for _ in range(3):
+        expert = CraftExpert(noisy.batch).act()  # what the expert does in the state about to be recorded
+        recorded, executed = noisy._act()
+        assert (recorded == expert).all()
+        flipped = (executed != recorded).mean()
+        assert 0.15 < flipped < 0.35  # 0.3 x 4/5: a drawn action may be the expert's own
+        repeated, executed_again = again._act()
+        assert (executed_again == executed).all()  # the noise comes from the episodes' seeds
+        for rec in (noisy, again):
+            rec.batch.step(executed)
+    recorded, executed = quiet._act()
+    assert (recorded == executed).all()
+    with pytest.raises(ValueError, match=r"dart_noise must be in \[0, 1\), got 1.0"):
+        recorder(1.0)
+
+
+def test_dart_noise_is_kept_in_the_provenance_and_the_card(tmp_path):
+    root = tmp_path / "ds"
+    run_record("--tasks", "AC", "--episodes-per-task", "5", "--root", str(root), "--repo-id", "local/x",
+               "--dart-noise", "0.2")
+    dataset = LeRobotDataset("local/x", root=root)
+    assert dataset.meta.total_episodes == 5
+    card = (root / "README.md").read_text()
+    assert "DART noise 0.2" in card and "--dart-noise 0.2" in card
+    plain = tmp_path / "plain"
+    run_record("--tasks", "AC", "--episodes-per-task", "5", "--root", str(plain), "--repo-id", "local/x")
+    assert "DART" not in (plain / "README.md").read_text()
+
+
 def test_subtask_annotations_as_native_language_rows(tmp_path):
     root = tmp_path / "ds"
     run_record("--tasks", "ADC", "--episodes-per-task", "4", "--root", str(root), "--repo-id", "local/lang",
@@ -277,6 +314,7 @@ def test_dial_mcap_and_card(dial_recorded):
         (["--episodes", "0"], "--episodes must be given and >= 1"),
         (["--episodes", "3", "--digits", "1"], "at least two distinct"),
         (["--episodes", "3", "--video"], "Craft options"),
+        (["--episodes", "3", "--dart-noise", "0.1"], "Craft options"),
         (["--tasks", "12,1x", "--episodes-per-task", "2"], "PIN of digits"),
         (["--tasks", "12", "--episodes", "2"], "either --tasks"),
     ],

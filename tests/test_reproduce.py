@@ -76,6 +76,15 @@ def test_a_dataset_is_reused_only_when_recorded_with_the_same_settings(tmp_path,
         record_dataset(data, "AC", "local/tiny", 2, 1)
     with pytest.raises(SystemExit, match="--episodes-per-task 3"):
         record_dataset(data, "AC", "local/tiny", 3, 0)
+    with pytest.raises(SystemExit, match="--dart-noise 0.1"):
+        record_dataset(data, "AC", "local/tiny", 2, 0, dart_noise=0.1)
+    noisy = tmp_path / "noisy"
+    record_dataset(noisy, "AC", "local/tiny", 2, 0, dart_noise=0.1)
+    capsys.readouterr()
+    record_dataset(noisy, "AC", "local/tiny", 2, 0, dart_noise=0.1)
+    assert f"reusing the dataset in {noisy}" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="recorded by: record_demos .*--dart-noise 0.1"):
+        record_dataset(noisy, "AC", "local/tiny", 2, 0)
 
 
 def test_a_moved_dataset_is_still_reused_but_one_of_unknown_origin_is_not(tmp_path):
@@ -112,6 +121,10 @@ def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_an
     assert faster == {"usage_balance": 1.0, "optimizer_lr": 0.002}
     assert imitation.run_dir(Path("w"), main, 1, faster) == Path(
         "w/imitation_s1/3options_T10_usage_balance1.0_optimizer_lr0.002/seed1")
+    decayed = overrides("--weight-decay", "1.0", "--window-start", "packed")
+    assert decayed == {"usage_balance": 1.0, "optimizer_weight_decay": 1.0, "window_start": "packed"}
+    assert imitation.run_dir(Path("w"), main, 1, decayed) == Path(
+        "w/imitation_s1/3options_T10_usage_balance1.0_optimizer_weight_decay1.0_packed/seed1")
 
 
 def test_imitation_runs_can_be_limited_to_chosen_variants():

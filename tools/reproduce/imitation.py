@@ -34,6 +34,7 @@ S1_REPO_ID = "local/craft_s1"
 # when it differs from the default, so runs made before the option existed keep their command.
 STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": SequenceConfig.obs_encoder,
                   "usage_balance": OCNConfig.usage_balance, "optimizer_lr": SequenceConfig.optimizer_lr,
+                  "optimizer_weight_decay": SequenceConfig.optimizer_weight_decay,
                   "window_start": SequenceConfig.window_start}
 # The option-usage balance this study trains with unless told otherwise: without it, whether the
 # options split the subtasks within a run's steps is a matter of the run (README, results).
@@ -42,9 +43,11 @@ STUDY_USAGE_BALANCE = 1.0
 # when these match (`earlier_runs`).
 STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
               "lr_schedule", "obs_encoder", "usage_balance", "optimizer_lr", "rollouts", "settle_steps",
-              "settle_termination_cost", "window_start")
+              "settle_termination_cost", "window_start", "optimizer_weight_decay", "dart_noise")
 # What a results file written before the study settled its runs was made with.
 UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0}
+# How the demonstrations were recorded, where a study may differ from `record_demos`'s defaults.
+RECORDING_DEFAULTS = {"dart_noise": 0.0}
 # The settling phase this study ends every run with unless told otherwise (`runs.Settling`).
 STUDY_SETTLING = Settling(steps=1000, termination_cost=0.1)
 METRICS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "diagonal_mean", "off_diagonal_max", "mean_success_rate")
@@ -78,9 +81,11 @@ def train_settings(args: argparse.Namespace) -> TrainSettings:
 
 
 def s1_data(args: argparse.Namespace) -> Path:
-    """The S1 demonstrations in the workdir, recorded on first use."""
+    """The S1 demonstrations in the workdir, recorded on first use (with `--dart-noise` where the
+    study has that option)."""
     data = args.workdir / "craft_s1"
-    record_dataset(data, S1_TASKS, S1_REPO_ID, args.episodes_per_task, args.data_seed)
+    dart_noise = getattr(args, "dart_noise", RECORDING_DEFAULTS["dart_noise"])
+    record_dataset(data, S1_TASKS, S1_REPO_ID, args.episodes_per_task, args.data_seed, dart_noise=dart_noise)
     return data
 
 
@@ -211,10 +216,13 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Training: `lerobot-train`, {result['settings']['steps']} steps of "
         f"{result['settings']['batch_size']} windows (episodes), {result['settings']['lr_schedule']} learning "
-        f"rate {result['settings'].get('optimizer_lr', STUDY_DEFAULTS['optimizer_lr']):g}, controller learning-rate "
+        f"rate {result['settings'].get('optimizer_lr', STUDY_DEFAULTS['optimizer_lr']):g}, weight decay "
+        f"{result['settings'].get('optimizer_weight_decay', STUDY_DEFAULTS['optimizer_weight_decay']):g}, "
+        "controller learning-rate "
         f"scale {result['settings']['controller_lr_scale']}, option-usage balance "
         f"{result['settings'].get('usage_balance', STUDY_DEFAULTS['usage_balance'])}, observation encoder "
-        f"`{result['settings']['obs_encoder']}`, {loading_words(result['settings'])}; {settling_words(result['settings'])} (a run's train time "
+        f"`{result['settings']['obs_encoder']}`, {loading_words(result['settings'])}"
+        f"{recording_words(result['settings'])}; {settling_words(result['settings'])} (a run's train time "
         "includes it); scores: `ocn-eval` "
         f"on the validation split "
         f"({result['settings']['rollouts']} env episodes per task and per option-table cell). Runs finished: "
@@ -296,7 +304,7 @@ def earlier_runs(args: argparse.Namespace, planned: list[tuple[Variant, int]]) -
         return []
     earlier = json.loads(path.read_text())
     # A file written before a setting existed was made at the policy's default for it.
-    settings = {**STUDY_DEFAULTS, **UNSETTLED, **earlier["settings"]}
+    settings = {**STUDY_DEFAULTS, **UNSETTLED, **RECORDING_DEFAULTS, **earlier["settings"]}
     differing = [f"{key} {settings.get(key)!r} there, {getattr(args, key)!r} here" for key in STUDY_KEYS
                  if settings.get(key) != getattr(args, key)]
     if differing:
@@ -360,6 +368,12 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
     return result
 
 
+def recording_words(settings: dict[str, Any]) -> str:
+    """How the demonstrations were recorded, where that is not `record_demos`'s default."""
+    noise = settings.get("dart_noise", RECORDING_DEFAULTS["dart_noise"])
+    return f" of demonstrations recorded with DART noise {noise:g} (`record_demos --dart-noise`)" if noise else ""
+
+
 def loading_words(settings: dict[str, Any]) -> str:
     """How the study's runs loaded their episodes."""
     if settings.get("window_start", STUDY_DEFAULTS["window_start"]) == "packed":
@@ -384,10 +398,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="lr over each run: the paper's constant, or cosine annealing to 0 (OCNConfig.lr_schedule)")
     s1.add_argument("--optimizer-lr", type=float, default=STUDY_DEFAULTS["optimizer_lr"],
                     help="Adam's learning rate of every run (OCNConfig.optimizer_lr; the paper's 1e-3)")
+    s1.add_argument("--weight-decay", dest="optimizer_weight_decay", type=float,
+                    default=STUDY_DEFAULTS["optimizer_weight_decay"],
+                    help="AdamW's decoupled weight decay of every run (OCNConfig.optimizer_weight_decay; 0: the "
+                         "paper's Adam)")
     s1.add_argument("--obs-encoder", choices=CRAFT_ENCODERS, default=STUDY_DEFAULTS["obs_encoder"],
                     help="observation of every run: OMPN's features (the paper's) or the exact map (README, "
                          "observation encoders)")
     add_window_start_argument(s1)
+    s1.add_argument("--dart-noise", type=float, default=RECORDING_DEFAULTS["dart_noise"],
+                    help="record the demonstrations with this DART noise (record_demos --dart-noise; needs a "
+                         "--workdir of its own and a --window-size that holds the longer episodes, e.g. 32)")
     s1.add_argument("--usage-balance", type=float, default=STUDY_USAGE_BALANCE,
                     help="weight of the option-usage balance term (OCNConfig.usage_balance; 0 is the paper's loss)")
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")

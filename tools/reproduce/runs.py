@@ -24,12 +24,15 @@ SAVE_EVERY = 1000  # lerobot-train checkpoints this often by default, so a stopp
 MAX_SPLIT_ARGUMENT = 100_000
 
 
-def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int, seed: int, env: str = "craft") -> None:
-    """Record demonstrations of `tasks` (comma-separated: Craft tasks, or Dial PINs with env "dial")
-    unless `root` already holds exactly that dataset; a dataset recorded with other settings is
-    refused (`check_recorded_as`)."""
+def record_dataset(root: Path, tasks: str, repo_id: str, episodes_per_task: int, seed: int, env: str = "craft",
+                   dart_noise: float = 0.0) -> None:
+    """Record demonstrations of `tasks` (comma-separated: Craft tasks, or Dial PINs with env "dial"),
+    with Craft's DART noise if given, unless `root` already holds exactly that dataset; a dataset
+    recorded with other settings is refused (`check_recorded_as`)."""
     arguments = ["--env", env, "--tasks", tasks, "--episodes-per-task", str(episodes_per_task),
                  "--root", str(root), "--repo-id", repo_id, "--seed", str(seed)]
+    if dart_noise:
+        arguments += ["--dart-noise", str(dart_noise)]
     if (root / "meta" / "info.json").exists():
         check_recorded_as(root, arguments)
         print(f"reusing the dataset in {root}", flush=True)
