@@ -201,7 +201,7 @@ def test_dart_noise_executes_random_actions_but_records_the_experts():
         assert (recorded == expert).all()
         flipped = (executed != recorded).mean()
         assert 0.15 < flipped < 0.35  # 0.3 x 4/5: a drawn action may be the expert's own
-        repeated, executed_again = again._act()
+        _, executed_again = again._act()
         assert (executed_again == executed).all()  # the noise comes from the episodes' seeds
         for rec in (noisy, again):
             rec.batch.step(executed)
