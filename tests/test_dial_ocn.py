@@ -222,6 +222,8 @@ def test_ocn_eval_on_dial(trained, dial_dataset, tmp_path):
     shape = result["parse_statistics"]
     assert shape["true_segments_per_episode"] == 2.0 and shape["segments_per_episode"] >= 1.0  # 2-digit PINs
     assert len(shape["label_share"]) <= 2 and sum(shape["label_share"]) == pytest.approx(1.0, abs=1e-3)
+    assert shape["boundary_offsets"]["boundaries"] == 5  # one inner boundary per 2-digit PIN
+    assert "boundary_offsets_by_previous_action" not in shape  # 9 torques: no action to split by
     for key in ("f1_tol0", "f1_tol1", "align_acc", "nmi"):
         assert 0.0 <= result[key] <= 1.0, key
     table = result["option_subtask_success"]

@@ -117,3 +117,29 @@ def test_parse_statistics_shows_a_pair_of_options_sharing_two_subtasks():
         "3": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], None],
     }
     assert stats["segments_per_episode"] == 4.0 and stats["true_segments_per_episode"] == 2.0
+
+
+def test_boundary_offsets_place_each_true_boundary_and_split_them_by_the_move_before_it():
+    from ocn_data.episodes_table import EpisodeArrays
+    from tools.episode_parsing import Segmentation, parse_statistics
+
+    # Inner true boundaries (last step of a subtask that is not the episode's last): episode 0 at
+    # step 2, episode 1 at steps 1 and 3, episode 2 at step 0.
+    index = np.array([[0, 0, 0, 1, 1, 1], [0, 0, 1, 1, 2, 2], [0, 1, 1, -1, -1, -1]])
+    action = np.array([[4, 0, 4, 1, 1, 4], [3, 4, 0, 4, 2, 4], [4, 2, 4, 0, 0, 0]])[..., None]
+    episodes = EpisodeArrays(state=np.zeros((3, 6, 1)), action=action, subtask_index=index, subtask_id=index,
+                             mask=index >= 0, lengths=np.array([6, 6, 3]), tasks=["AC"] * 3, episode_index=np.arange(3))
+    # Episode 0 switches one step early (1 for 2); episode 1 on time at 1, and 3's nearest is that same
+    # switch, two steps early; episode 2 never switches.
+    parses = [Segmentation(np.array([1, 5]), None), Segmentation(np.array([1, 5]), None),
+              Segmentation(np.array([2]), None)]
+    stats = parse_statistics(episodes, parses)
+    assert stats["boundary_offsets"] == {"boundaries": 4, "-2": 0.25, "-1": 0.25, "0": 0.25, "1": 0.0, "2": 0.0,
+                                         "farther": 0.25}
+    by_action = stats["boundary_offsets_by_previous_action"]
+    assert set(by_action) == {"-1", "0", "3"}  # step 0 has no action before it
+    assert by_action["0"]["boundaries"] == 2 and by_action["0"]["-1"] == by_action["0"]["-2"] == 0.5
+    assert by_action["3"]["0"] == 1.0 and by_action["-1"]["farther"] == 1.0
+    # Continuous actions (several dimensions) get no breakdown by action.
+    continuous = EpisodeArrays(**{**episodes.__dict__, "action": np.zeros((3, 6, 9))})
+    assert "boundary_offsets_by_previous_action" not in parse_statistics(continuous, parses)

@@ -238,3 +238,28 @@ def test_packed_clones_load_the_packed_view_in_folders_of_their_own_and_share_im
     assert shared.parent.name == "3options_T10_usage_balance1.0_packed"
     assert parsing.run_dir(parsed("parsing-s1", "--window-start", "packed"), methods["ompn"], 1).parent.name == "ompn_packed"
     assert not hasattr(parsed("dial"), "window_start")  # Dial's rescaled states keep windows
+
+
+def test_dart_noise_reaches_every_clones_recording_and_the_results_header(tmp_path):
+    import argparse
+
+    from tools.reproduce import finetune
+    from tools.reproduce.runs import record_dataset
+
+    parser = argparse.ArgumentParser()
+    finetune.add_parsers(parser.add_subparsers())
+    args = parser.parse_args(["s2", "--dart-noise", "0.1", "--episodes-per-task", "2", "--workdir", str(tmp_path)])
+    # A workdir whose first demonstration set was recorded without noise is refused before any training.
+    record_dataset(tmp_path / "craft_s2_ab", "AB,BA", "local/craft_s2_ab", 2, 0)
+    with pytest.raises(SystemExit, match="--dart-noise 0.1"):
+        finetune.clone(args, SETTINGS["s2"], METHODS[0], 1)
+    assert not (tmp_path / "clone").exists()
+
+    summary = {"OCN | sparse": {"method": "OCN", "reward": "sparse", "seeds": [1], "frames_per_s": 1.0, "at_budget": {
+        key: {"mean": 0.5, "std": 0.0} for key in ("mean_return", "success", "success[ADC]", "success[CAD]",
+                                                   "success[DCA]")}}}
+    result = {"setting": "s1", "command": "ocn-reproduce s1", "date": "2025-01-01", "machine": {"cpu": "cpu", "cores": 2},
+              "settings": {"frames": 100, "envs": 4, "dart_noise": 0.1}, "runs_finished": 1, "runs_planned": 1,
+              "wall_s": 60.0, "summary": summary, "must_show": []}
+    assert "demonstrations recorded with DART noise 0.1" in markdown(result)
+    assert "DART" not in markdown({**result, "settings": {"frames": 100, "envs": 4}})

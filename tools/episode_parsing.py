@@ -235,7 +235,9 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
     half and half between them, which NMI only summarises, shows here as two rows of halves); and
     `label_by_subtask_third`: the same shares in the first, middle and last third of each true
     segment (None for a third without frames), which tell a pair that splits subtasks by target
-    from one that splits them by phase, one option starting every subtask and the other finishing it."""
+    from one that splits them by phase, one option starting every subtask and the other finishing it;
+    `boundary_offsets`: where the parse puts each true boundary, one step early, on time, late...
+    (`_boundary_offsets`), and for discrete actions the same by the action before the boundary step."""
     true_segments = [len(boundaries_from_labels(episodes.subtask_index[i, :n])) for i, n in enumerate(episodes.lengths)]
     stats: dict[str, Any] = {
         "segments_per_episode": float(np.mean([len(parse.boundaries) for parse in parses])),
@@ -253,7 +255,38 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
             str(subtask): [_shares(labels[(subtasks == subtask) & (thirds == third)], labels.max() + 1) for third in range(3)]
             for subtask in np.unique(subtasks)
         }
+    offsets = _boundary_offsets(episodes, parses)
+    stats["boundary_offsets"] = _offset_shares(offsets)
+    if episodes.action.shape[-1] == 1:  # discrete actions: which move led to the boundary step
+        before = np.array([a for a, _ in offsets])
+        stats["boundary_offsets_by_previous_action"] = {
+            str(action): _offset_shares([o for o in offsets if o[0] == action]) for action in np.unique(before)
+        }
     return stats
+
+
+OFFSET_BINS = ("-2", "-1", "0", "1", "2", "farther")
+
+
+def _boundary_offsets(episodes: EpisodeArrays, parses: Sequence[Segmentation]) -> list[tuple[int, str]]:
+    """Per inner true boundary (the last step of a subtask that is not the episode's last): the
+    demonstrated action one step before it (-1 at step 0; the first action dimension) and the offset
+    of the nearest inner predicted boundary (predicted - true, as a bin of OFFSET_BINS; 'farther':
+    none within 2 steps). -1 is a switch one step early: the next subtask's option takes its last step."""
+    offsets = []
+    for i, n in enumerate(episodes.lengths):
+        predicted = parses[i].boundaries[parses[i].boundaries < n - 1]
+        for t in boundaries_from_labels(episodes.subtask_index[i, :n])[:-1]:
+            nearest = int(predicted[np.argmin(np.abs(predicted - t))] - t) if predicted.size else None
+            action = int(episodes.action[i, t - 1, 0]) if t > 0 else -1
+            offsets.append((action, str(nearest) if nearest is not None and abs(nearest) <= 2 else "farther"))
+    return offsets
+
+
+def _offset_shares(offsets: Sequence[tuple[int, str]]) -> dict[str, Any]:
+    """How many inner true boundaries `offsets` holds and the share of each offset bin."""
+    bins = [offset for _, offset in offsets]
+    return {"boundaries": len(bins), **{b: round(bins.count(b) / len(bins), 4) if bins else None for b in OFFSET_BINS}}
 
 
 def _segment_thirds(segment_index: np.ndarray) -> np.ndarray:

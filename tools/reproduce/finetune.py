@@ -155,7 +155,8 @@ def clone(args: argparse.Namespace, setting: Setting, method: Method, seed: int)
     runs = []
     for folder, tasks in setting.demos:
         data = args.workdir / folder
-        record_dataset(data, tasks, f"local/{folder}", args.episodes_per_task, args.data_seed)
+        record_dataset(data, tasks, f"local/{folder}", args.episodes_per_task, args.data_seed,
+                       dart_noise=args.dart_noise)
         run_dir = clone_dir(args, setting, method, folder, seed)
         run = train_policy(settings, data, f"local/{folder}", run_dir, seed, overrides)
         settling = clone_settling(args, method)
@@ -341,7 +342,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
         f"{setting.n_options} options per cloned model{skills_note}, cloned by "
-        f"`lerobot-train` on {imitation.loading_words(result['settings'])} "
+        f"`lerobot-train` on {imitation.loading_words(result['settings'])}"
+        f"{imitation.recording_words(result['settings'])} "
         f"(OCN-family clones' option-usage balance {result['settings'].get('usage_balance', 0.0)}; "
         f"OCN's: {imitation.settling_words(result['settings'])}); PPO through `ocn-finetune`, "
         f"{result['settings']['frames']} env frames per run, {result['settings']['envs']} envs. "
@@ -465,6 +467,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         add_finetune_arguments(parser, runnable, 300_000)
         imitation.add_training_arguments(parser)
         imitation.add_window_start_argument(parser)
+        imitation.add_dart_noise_argument(parser)
         imitation.add_settling_arguments(parser, 0, "OCN's clones (as imitation-s1's, which settles by default)")
         parser.add_argument("--results", type=Path, default=RESULTS)
         parser.set_defaults(func=reproduce)

@@ -406,9 +406,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="observation of every run: OMPN's features (the paper's) or the exact map (README, "
                          "observation encoders)")
     add_window_start_argument(s1)
-    s1.add_argument("--dart-noise", type=float, default=RECORDING_DEFAULTS["dart_noise"],
-                    help="record the demonstrations with this DART noise (record_demos --dart-noise; needs a "
-                         "--workdir of its own and a --window-size that holds the longer episodes, e.g. 32)")
+    add_dart_noise_argument(s1)
     s1.add_argument("--usage-balance", type=float, default=STUDY_USAGE_BALANCE,
                     help="weight of the option-usage balance term (OCNConfig.usage_balance; 0 is the paper's loss)")
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
@@ -422,6 +420,13 @@ def add_window_start_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window-start", choices=("episode", "packed"), default=STUDY_DEFAULTS["window_start"],
                         help="how lerobot-train loads episodes: LeRobot's windows, or one row per episode from the "
                              "packed view (several times faster; README, the packed view)")
+
+
+def add_dart_noise_argument(parser: argparse.ArgumentParser) -> None:
+    """`--dart-noise` of the Craft studies that record their own demonstrations (`record_dataset`)."""
+    parser.add_argument("--dart-noise", type=float, default=RECORDING_DEFAULTS["dart_noise"],
+                        help="record the demonstrations with this DART noise (record_demos --dart-noise; needs a "
+                             "--workdir of its own and a --window-size that holds the longer episodes, e.g. 32)")
 
 
 def add_settling_arguments(parser: argparse.ArgumentParser, steps: int, which: str) -> None:
