@@ -150,24 +150,27 @@ def test_compile_is_cloned_with_its_own_defaults_and_finetuned_over_its_decoders
     assert "--flat" not in command and checkpoints == [str(clone.checkpoint) for clone in clones]
 
 
-def test_results_header_notes_compiles_options_only_when_compile_ran():
+def _s1_results_markdown(methods: list[str], settings: dict | None = None) -> str:
+    """S1's results file for one sparse seed of each of `methods` (placeholder figures)."""
     setting = SETTINGS["s1"]
     stat = {"mean": 0.5, "std": 0.0}
     at_budget = {key: stat for key in ("mean_return", "success", *(f"success[{t}]" for t in task_labels(setting)))}
+    summary = {f"{name} | sparse": {"method": name, "reward": "sparse", "seeds": [1], "at_budget": at_budget,
+                                    "frames_per_s": 100.0} for name in methods}
+    result = {"setting": setting.name, "command": "ocn-reproduce s1", "date": "2025-01-01",
+              "machine": {"cpu": "cpu", "cores": 2}, "settings": {"frames": 100, "envs": 4, **(settings or {})},
+              "runs_finished": 2, "runs_planned": 2, "wall_s": 60.0, "summary": summary, "must_show": []}
+    return markdown(result)
 
+
+def test_results_header_notes_compiles_options_only_when_compile_ran():
     def header(methods: list[str]) -> str:
-        summary = {f"{name} | sparse": {"method": name, "reward": "sparse", "seeds": [1], "at_budget": at_budget,
-                                        "frames_per_s": 100.0} for name in methods}
-        result = {"setting": setting.name, "command": "ocn-reproduce s1", "date": "2025-01-01",
-                  "machine": {"cpu": "cpu", "cores": 2}, "settings": {"frames": 100, "envs": 4}, "runs_finished": 2,
-                  "runs_planned": 2, "wall_s": 60.0, "summary": summary, "must_show": []}
-        return markdown(result).split("## Checks")[0]
+        return _s1_results_markdown(methods).split("## Checks")[0]
 
     note = "3 options per cloned model (compILE: one per latent category of its decoder), cloned by"
     assert note in header(["OCN", "compILE"])
     assert "3 options per cloned model, cloned by" in header(["OCN", "MoE"]) and "compILE" not in header(["OCN", "MoE"])
     assert "3 options per cloned model (OMPN: none, its whole network is finetuned), cloned by" in header(["OCN", "OMPN"])
-
 
 
 def test_ompn_is_cloned_with_its_own_defaults_finetuned_whole_in_s1_only_and_checked_against_ocn(craft_dataset,
@@ -255,11 +258,5 @@ def test_dart_noise_reaches_every_clones_recording_and_the_results_header(tmp_pa
         finetune.clone(args, SETTINGS["s2"], METHODS[0], 1)
     assert not (tmp_path / "clone").exists()
 
-    summary = {"OCN | sparse": {"method": "OCN", "reward": "sparse", "seeds": [1], "frames_per_s": 1.0, "at_budget": {
-        key: {"mean": 0.5, "std": 0.0} for key in ("mean_return", "success", "success[ADC]", "success[CAD]",
-                                                   "success[DCA]")}}}
-    result = {"setting": "s1", "command": "ocn-reproduce s1", "date": "2025-01-01", "machine": {"cpu": "cpu", "cores": 2},
-              "settings": {"frames": 100, "envs": 4, "dart_noise": 0.1}, "runs_finished": 1, "runs_planned": 1,
-              "wall_s": 60.0, "summary": summary, "must_show": []}
-    assert "demonstrations recorded with DART noise 0.1" in markdown(result)
-    assert "DART" not in markdown({**result, "settings": {"frames": 100, "envs": 4}})
+    assert "demonstrations recorded with DART noise 0.1" in _s1_results_markdown(["OCN"], {"dart_noise": 0.1})
+    assert "DART" not in _s1_results_markdown(["OCN"])

@@ -258,9 +258,9 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
     offsets = _boundary_offsets(episodes, parses)
     stats["boundary_offsets"] = _offset_shares(offsets)
     if episodes.action.shape[-1] == 1:  # discrete actions: which move led to the boundary step
-        before = np.array([a for a, _ in offsets])
         stats["boundary_offsets_by_previous_action"] = {
-            str(action): _offset_shares([o for o in offsets if o[0] == action]) for action in np.unique(before)
+            str(action): _offset_shares([o for o in offsets if o[0] == action])
+            for action in sorted({action for action, _ in offsets})
         }
     return stats
 
