@@ -137,6 +137,25 @@ def _dial_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable[
 
 
 SETUPS = {"craft": _craft_setup, "dial": _dial_setup}
+# Session fields that set how the demonstrations are drawn. A resumed recording must keep them, or
+# one dataset would mix two distributions without its card saying so.
+RESUME_KEEPS = {"craft": ("mode", "dart_noise"), "dial": ("digits", "noise_levels")}
+# What a session recorded before the field existed meant by it.
+RECORDED_BEFORE_THE_FIELD = {"env": "craft", "dart_noise": 0.0}
+
+
+def check_resumable(last: dict, env: str, session: dict) -> None:
+    """Refuse to append a session whose env or sampling settings differ from the dataset's last one."""
+    recorded_env = last.get("env", RECORDED_BEFORE_THE_FIELD["env"])
+    if recorded_env != env:
+        raise ValueError(f"--resume: the dataset was recorded in env {recorded_env!r}, not {env!r}")
+    for key in RESUME_KEEPS[env]:
+        recorded = last.get(key, RECORDED_BEFORE_THE_FIELD.get(key))
+        if recorded != session.get(key):
+            raise ValueError(
+                f"--resume: the dataset was recorded with {key} {recorded!r}, not {session.get(key)!r}; "
+                "resume with the same setting or record into a new --root"
+            )
 
 
 def record(args: argparse.Namespace) -> int:
@@ -147,11 +166,7 @@ def record(args: argparse.Namespace) -> int:
     if args.mcap is not None:
         check_new_log(args.mcap)
     if provenance["sessions"]:
-        last = provenance["sessions"][-1]
-        if last.get("env", "craft") != args.env:
-            raise ValueError(f"--resume: the dataset was recorded in env {last.get('env', 'craft')!r}")
-        if last.get("mode") != world_session.get("mode"):
-            raise ValueError(f"--resume: the dataset was recorded in mode {last['mode']!r}")
+        check_resumable(provenance["sessions"][-1], args.env, world_session)
     writer = ColumnarDatasetWriter(
         args.root, args.repo_id, fps, features,
         resume=args.resume,

@@ -128,6 +128,10 @@ def test_resume_appends_and_fresh_root_is_required(recorded, tmp_path):
 
     copy = tmp_path / "copy"
     subprocess.run(["cp", "-r", str(root), str(copy)], check=True)
+    noisy = run_record("--tasks", "AC", "--episodes-per-task", "5", "--root", str(copy), "--repo-id", "local/test_s1",
+                       "--dart-noise", "0.1", "--resume", check=False)
+    assert noisy.returncode == 2 and "recorded with dart_noise 0.0, not 0.1" in noisy.stderr
+    assert LeRobotDataset("local/test_s1", root=copy).num_episodes == 60
     run_record("--tasks", "AC", "--episodes-per-task", "5", "--root", str(copy), "--repo-id", "local/test_s1",
                "--seed", "3", "--resume")
     ds = LeRobotDataset("local/test_s1", root=copy)
