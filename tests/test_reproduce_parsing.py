@@ -68,6 +68,7 @@ def test_parsing_s1_scores_every_checkpoint_and_writes_results_then_reuses(tmp_p
     assert (results / "parsing_s1.png").stat().st_size > 0
     report = (results / "parsing_s1.md").read_text()
     assert "| OCN | 1 | 2 |" in report and "| OMPN | 1 | 2 |" in report and "lerobot-train --policy.type=ompn" in report
+    assert "k the episode's true number of subtasks" in report
 
     cache = work / "parsing_s1" / "ocn" / "seed1" / "parsing.json"
     scored_at = cache.stat().st_mtime_ns

@@ -84,6 +84,13 @@ HYPERPARAMETERS: dict[str, tuple[tuple[str, ...], str]] = {
     ),
 }
 
+# How each model's boundaries are read, said beside every comparison: OMPN is given a count.
+READOUT_NOTE = (
+    "How the boundaries are read: OMPN's are its top-k expansions with k the episode's true number of "
+    "subtasks, as in its own evaluation (`tools.episode_parsing`), so it is told how many to place; OCN's "
+    "and HIL's are where the chosen option changes, compILE's its argmax segment ends, with no count given."
+)
+
 
 def method_settings(args: argparse.Namespace, method: Method) -> tuple[TrainSettings, dict[str, Any]]:
     """A method's `lerobot-train` settings and `--policy.*` overrides: those of `ocn-reproduce s1`'s
@@ -295,6 +302,8 @@ def markdown(result: dict[str, Any]) -> str:
         *checks_table(result["must_show"]),
         "",
         "## Where a baseline beats OCN at the end of training",
+        "",
+        READOUT_NOTE,
         "",
     ]
     wins = result["baseline_wins"]
