@@ -13,7 +13,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
-from policies.ocn.modeling_ocn import termination_penalty, usage_imbalance
+from policies.ocn.modeling_ocn import explained_terminations, termination_penalty, usage_imbalance
 from policies.ocn.heads import DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, sample_index
 from policies.ocn.recurrence import OCNState, StepOutput
 from policies.sequence import training_windows
@@ -238,6 +238,40 @@ def test_termination_cost_adds_the_weighted_mean_termination_after_the_first_ste
         make_policy(termination_cost=0.1, hierarchy="moe")
 
 
+def test_explained_terminations_weigh_each_ending_option_by_its_own_probability_of_the_action():
+    # T = 2, B = 1, N = 3: p^c_1, then at t = 2 each option's termination and the continuing options'
+    # probabilities of the demonstrated action (the restarted components play no part).
+    p_c = torch.tensor([[[0.5, 0.3, 0.2]], [[0.2, 0.2, 0.6]]], requires_grad=True)
+    option_end = torch.tensor([[[1.0, 1.0, 1.0]], [[0.8, 0.1, 0.5]]], requires_grad=True)
+    component = torch.log(torch.tensor([[0.5] * 6, [0.9, 0.2, 0.4, 0.99, 0.99, 0.99]])).unsqueeze(-1).requires_grad_()
+    out = StepOutput(torch.ones(2, 1, 6), torch.zeros(6, 2, 1, 4), p_c, torch.ones(2, 1), option_end)
+    value = explained_terminations(out, component)
+    assert value.shape == (2, 1)
+    assert value[1, 0].item() == pytest.approx(0.5 * 0.8 * 0.9 + 0.3 * 0.1 * 0.2 + 0.2 * 0.5 * 0.4)
+    value[1].sum().backward()
+    # Only the terminations move: d/de_i = p^c_{1,i} p_i(a_2); p^c and the action probabilities get nothing.
+    torch.testing.assert_close(option_end.grad[1, 0], torch.tensor([0.5 * 0.9, 0.3 * 0.2, 0.2 * 0.4]))
+    assert p_c.grad is None and component.grad is None
+
+
+def test_explained_termination_cost_joins_the_loss_and_lowers_the_terminations():
+    batch = make_batch(steps=5)  # no padding: every window has 4 frames after its first
+    plain_policy = make_policy()
+    plain_loss, plain = plain_policy.forward(batch)
+    plain_loss.backward()
+    policy = make_policy(explained_termination_cost=2.0)
+    loss, stats = policy.forward(batch)
+    assert stats["nll"] == pytest.approx(plain["nll"]) and stats["explained_terminations"] > 0
+    torch.testing.assert_close(loss, plain_loss + 2.0 * torch.tensor(stats["explained_terminations"]))
+    loss.backward()
+    cost_grad = policy.core.options.b_out.grad[..., -1] - plain_policy.core.options.b_out.grad[..., -1]
+    assert (cost_grad > 0).all()
+    with pytest.raises(ValueError, match="explained_termination_cost must be >= 0, got -1.0"):
+        make_policy(explained_termination_cost=-1.0)
+    with pytest.raises(ValueError, match="explained_termination_cost is for hierarchy='ocn'"):
+        make_policy(explained_termination_cost=0.1, hierarchy="hil")
+
+
 def test_log_termination_penalty_charges_minus_log_one_minus_e_and_keeps_its_gradient_where_e_is_confident():
     batch = make_batch(steps=5)
     batch[f"{ACTION}_is_pad"][0, 3:] = True
@@ -267,6 +301,24 @@ def test_usage_imbalance_is_the_kl_of_the_real_frames_option_share_to_uniform():
     assert usage_imbalance(torch.full((4, 2, 3), 1 / 3), torch.ones(2, 4, dtype=torch.bool)).item() == pytest.approx(0.0)
     one_option = torch.nn.functional.one_hot(torch.zeros(4, 2, dtype=torch.long), 3).float()
     assert usage_imbalance(one_option, torch.ones(2, 4, dtype=torch.bool)).item() == pytest.approx(math.log(3))
+
+
+def test_usage_imbalance_over_k_options_lets_the_spare_ones_idle():
+    mask = torch.ones(1, 6, dtype=torch.bool)
+    # Six options, the frames on three of them equally: free under K = 3, charged under K = 6.
+    three = torch.nn.functional.one_hot(torch.tensor([[0], [1], [2], [0], [1], [2]]), 6).float()
+    assert usage_imbalance(three, mask, options=3).item() == 0.0
+    assert usage_imbalance(three, mask, options=6).item() == pytest.approx(math.log(2))
+    assert usage_imbalance(three, mask, options=2).item() == 0.0
+    # All on one option: ln K - H(u) = ln 3; K = 0 and K = N are the KL to the uniform.
+    one = torch.nn.functional.one_hot(torch.zeros(6, 1, dtype=torch.long), 6).float()
+    assert usage_imbalance(one, mask, options=3).item() == pytest.approx(math.log(3))
+    assert usage_imbalance(one, mask, options=0).item() == usage_imbalance(one, mask, options=6).item() == pytest.approx(math.log(6))
+    # Two options' worth of entropy is below three's: charged the difference.
+    two = torch.nn.functional.one_hot(torch.tensor([[0], [1], [0], [1], [0], [1]]), 6).float()
+    assert usage_imbalance(two, mask, options=3).item() == pytest.approx(math.log(3) - math.log(2))
+    with pytest.raises(ValueError, match=r"usage_balance_options must be in \[0, n_options = 3\], got 4"):
+        make_policy(usage_balance_options=4)
 
 
 def test_usage_balance_adds_the_weighted_imbalance_and_moves_the_controller_toward_the_rarer_options():

@@ -125,6 +125,14 @@ def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_an
     assert decayed == {"usage_balance": 1.0, "optimizer_weight_decay": 1.0, "window_start": "packed"}
     assert imitation.run_dir(Path("w"), main, 1, decayed) == Path(
         "w/imitation_s1/3options_T10_usage_balance1.0_optimizer_weight_decay1.0_packed/seed1")
+    assert overrides("--usage-balance-options", "0") == {"usage_balance": 1.0}
+    spare = overrides("--usage-balance-options", "3")
+    assert spare == {"usage_balance": 1.0, "usage_balance_options": 3}
+    assert imitation.run_dir(Path("w"), imitation.VARIANTS[2], 1, spare) == Path(
+        "w/imitation_s1/6options_T10_usage_balance1.0_usage_balance_options3/seed1")
+    words = imitation.balance_options_words
+    assert words({"usage_balance_options": 3}) == " over 3 options' worth of usage (`--policy.usage_balance_options`)"
+    assert words({}) == words({"usage_balance_options": 0}) == ""
 
 
 def test_imitation_runs_can_be_limited_to_chosen_variants():

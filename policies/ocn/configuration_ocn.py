@@ -82,6 +82,13 @@ class OCNConfig(SequenceConfig):
     # mid-subtask terminations that fail an option run alone; the log cost's, e_t, does not. Either way
     # a termination is kept where restarting raises the action likelihood by more than the cost.
     termination_penalty: str = "linear"
+    # Added to the loss: this weight times sum_i p^c_{t-1,i} e_{i,t} p_i(a_t) over each window's real
+    # frames after the first, p_i(a_t) being the continuing option's own probability of the demonstrated
+    # action (p^c and p_i held fixed, so only the terminations move). Where the continuing option and the
+    # next one both explain the action, the NLL does not care which acts and a termination one step early
+    # costs it nothing; this charges a termination by how well the option it ends would have done, so an
+    # option keeps the steps it can explain and ends where it cannot (0: the paper's loss).
+    explained_termination_cost: float = 0.0
     # Added to the loss: this weight times KL(u || uniform), u being the batch's mean p^c over its
     # real frames (0: the paper's loss). Under the NLL alone, the option that first fits a little
     # better is picked more, so it trains more and is picked more still: within a few hundred
@@ -89,6 +96,11 @@ class OCNConfig(SequenceConfig):
     # and the others wait for a split that may or may not come (the load-balancing term of
     # mixture-of-experts models, on the option shares).
     usage_balance: float = 0.0
+    # How many options' worth of usage the balance asks for, K (0: all n_options). The term becomes
+    # max(0, ln K - H(u)), which is KL(u || uniform) = ln N - H(u) at K = N. At K < N it lets the
+    # spare options go idle: KL to the uniform asks every one of 6 options for a sixth of the frames,
+    # so over 3 subtasks it puts each subtask on two options, and caps NMI near 0.76.
+    usage_balance_options: int = 0
     # Added to the loss: this weight times the expected NLL under the mixture weights,
     # sum_k w_k (-log p_k(a_t)), averaged like the NLL (0: the paper's loss alone). Over discrete
     # actions the mixture of the options' categoricals is itself one categorical, so under the
@@ -133,19 +145,20 @@ class OCNConfig(SequenceConfig):
             raise ValueError(f"controller_lr_scale must be > 0, got {self.controller_lr_scale}.")
         if not 0.0 <= self.forced_restart_rate < 1.0:
             raise ValueError(f"forced_restart_rate must be in [0, 1), got {self.forced_restart_rate}.")
-        if self.forced_restart_rate and self.hierarchy != "ocn":
-            raise ValueError(
-                f"forced_restart_rate is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}."
-            )
         check_choice("termination_penalty", self.termination_penalty, TERMINATION_PENALTIES)
         if self.termination_cost < 0:
             raise ValueError(f"termination_cost must be >= 0, got {self.termination_cost}.")
-        if self.termination_cost and self.hierarchy != "ocn":
-            raise ValueError(
-                f"termination_cost is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}."
-            )
+        if self.explained_termination_cost < 0:
+            raise ValueError(f"explained_termination_cost must be >= 0, got {self.explained_termination_cost}.")
+        for name in ("forced_restart_rate", "termination_cost", "explained_termination_cost"):
+            if getattr(self, name) and self.hierarchy != "ocn":
+                raise ValueError(f"{name} is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}.")
         if self.usage_balance < 0:
             raise ValueError(f"usage_balance must be >= 0, got {self.usage_balance}.")
+        if not 0 <= self.usage_balance_options <= self.n_options:
+            raise ValueError(
+                f"usage_balance_options must be in [0, n_options = {self.n_options}], got {self.usage_balance_options}."
+            )
         if self.expected_nll_weight < 0:
             raise ValueError(f"expected_nll_weight must be >= 0, got {self.expected_nll_weight}.")
         if self.initial_state_std < 0:

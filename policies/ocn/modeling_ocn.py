@@ -4,6 +4,7 @@ Batch plumbing shared with the other whole-episode policies (windows, masks, tas
 `policies.sequence`'s.
 """
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -45,12 +46,28 @@ def termination_penalty(config: OCNConfig, end: Tensor) -> Tensor:
     return -torch.log1p(-end.clamp_max(1.0 - 1e-6))
 
 
-def usage_imbalance(p_c: Tensor, mask: Tensor) -> Tensor:
+def explained_terminations(out: StepOutput, component: Tensor) -> Tensor:
+    """sum_i p^c_{t-1,i} e_{i,t} p_i(a_t) [T, B] (`OCNConfig.explained_termination_cost`), from time-major
+    outputs and `_component_log_prob`'s log p_k(a_t) [T, 2N, B], whose first N are the continuing options.
+    Only e_{i,t} carries a gradient. Row t = 0 (no option runs before the start) is meaningless."""
+    n_options = out.p_c.shape[-1]
+    explained = component[:, :n_options].transpose(1, 2).exp().detach()
+    previous = torch.cat([out.p_c[:1], out.p_c[:-1]]).detach()
+    return (previous * out.option_end * explained).sum(-1)
+
+
+def usage_imbalance(p_c: Tensor, mask: Tensor, options: int = 0) -> Tensor:
     """KL(u || uniform) of the options' share u = the mean of p^c [T, B, N] over real frames mask [B, T]:
-    0 when every option takes as many frames as the others, log N when one takes them all."""
+    0 when every option takes as many frames as the others, log N when one takes them all. With
+    `options` K < N, max(0, KL - ln(N / K)) = max(0, ln K - H(u)): 0 while u spreads over at least K
+    options' worth of entropy (`OCNConfig.usage_balance_options`)."""
     weights = mask.transpose(0, 1).unsqueeze(-1).to(p_c.dtype)
     share = (p_c * weights).sum((0, 1)) / weights.sum().clamp_min(1.0)
-    return (share * torch.log(share.clamp_min(1e-12) * p_c.shape[-1])).sum()
+    n_options = p_c.shape[-1]
+    kl = (share * torch.log(share.clamp_min(1e-12) * n_options)).sum()
+    if 0 < options < n_options:
+        return (kl - math.log(n_options / options)).clamp_min(0.0)
+    return kl
 
 
 class OCNPolicy(SequencePolicy, PreTrainedPolicy):
@@ -138,9 +155,12 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         if self.config.termination_cost:
             penalties["termination_penalty"] = (self.config.termination_cost, termination_penalty(self.config, out.end))
         component = self._component_log_prob(out, action)
+        if self.config.explained_termination_cost:
+            penalties["explained_terminations"] = (self.config.explained_termination_cost,
+                                                   explained_terminations(out, component))
         loss, stats = window_nll(self._action_log_prob(out, component), mask, reduction, {"mean_end": out.end}, penalties,
                                  packed=self.config.packed)
-        imbalance = usage_imbalance(out.p_c, mask)
+        imbalance = usage_imbalance(out.p_c, mask, self.config.usage_balance_options)
         stats["usage_imbalance"] = imbalance.item()
         if self.config.usage_balance:
             loss = loss + self.config.usage_balance * imbalance

@@ -33,7 +33,8 @@ S1_REPO_ID = "local/craft_s1"
 # paper's constant lr and OMPN's observation). A run spells one out, and gets its own folder, only
 # when it differs from the default, so runs made before the option existed keep their command.
 STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": SequenceConfig.obs_encoder,
-                  "usage_balance": OCNConfig.usage_balance, "optimizer_lr": SequenceConfig.optimizer_lr,
+                  "usage_balance": OCNConfig.usage_balance, "usage_balance_options": OCNConfig.usage_balance_options,
+                  "optimizer_lr": SequenceConfig.optimizer_lr,
                   "optimizer_weight_decay": SequenceConfig.optimizer_weight_decay,
                   "window_start": SequenceConfig.window_start}
 # The option-usage balance this study trains with unless told otherwise: without it, whether the
@@ -43,7 +44,8 @@ STUDY_USAGE_BALANCE = 1.0
 # when these match (`earlier_runs`).
 STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
               "lr_schedule", "obs_encoder", "usage_balance", "optimizer_lr", "rollouts", "settle_steps",
-              "settle_termination_cost", "window_start", "optimizer_weight_decay", "dart_noise")
+              "settle_termination_cost", "window_start", "optimizer_weight_decay", "dart_noise",
+              "usage_balance_options")
 # What a results file written before the study settled its runs was made with.
 UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0}
 # How the demonstrations were recorded, where a study may differ from `record_demos`'s defaults.
@@ -220,7 +222,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"{result['settings'].get('optimizer_weight_decay', STUDY_DEFAULTS['optimizer_weight_decay']):g}, "
         "controller learning-rate "
         f"scale {result['settings']['controller_lr_scale']}, option-usage balance "
-        f"{result['settings'].get('usage_balance', STUDY_DEFAULTS['usage_balance'])}, observation encoder "
+        f"{result['settings'].get('usage_balance', STUDY_DEFAULTS['usage_balance'])}"
+        f"{balance_options_words(result['settings'])}, observation encoder "
         f"`{result['settings']['obs_encoder']}`, {loading_words(result['settings'])}"
         f"{recording_words(result['settings'])}; {settling_words(result['settings'])} (a run's train time "
         "includes it); scores: `ocn-eval` "
@@ -368,6 +371,12 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
     return result
 
 
+def balance_options_words(settings: dict[str, Any]) -> str:
+    """How many options the usage balance asks for, where that is not all of them."""
+    options = settings.get("usage_balance_options", STUDY_DEFAULTS["usage_balance_options"])
+    return f" over {options} options' worth of usage (`--policy.usage_balance_options`)" if options else ""
+
+
 def recording_words(settings: dict[str, Any]) -> str:
     """How the demonstrations were recorded, where that is not `record_demos`'s default."""
     noise = settings.get("dart_noise", RECORDING_DEFAULTS["dart_noise"])
@@ -409,6 +418,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_dart_noise_argument(s1)
     s1.add_argument("--usage-balance", type=float, default=STUDY_USAGE_BALANCE,
                     help="weight of the option-usage balance term (OCNConfig.usage_balance; 0 is the paper's loss)")
+    s1.add_argument("--usage-balance-options", type=int, default=STUDY_DEFAULTS["usage_balance_options"],
+                    help="options' worth of usage the balance asks for (OCNConfig.usage_balance_options; 0: all of "
+                         "a run's options); below a variant's option count the spare options may idle")
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
