@@ -427,8 +427,8 @@ def run_train_bench(args: argparse.Namespace) -> None:
         )
     view, packed = training_view(root, "local/craft_s1"), packed_view(root, "local/craft_s1", args.window)
     # The recorded dataset, its training view and its packed view in turn, then the packed view with one
-    # data worker and two math threads (a packed row loads in well under a millisecond, so one worker
-    # leaves the second core to the update); best of `--train-rounds` runs each.
+    # data worker and two math threads (a packed row loads in well under a millisecond: does the second
+    # core serve the update better than a second worker?); best of `--train-rounds` runs each.
     settings = {"lerobot_train": (root, args.workers, 1), "lerobot_train_view": (view, args.workers, 1),
                 "lerobot_train_packed": (packed, args.workers, 1), "lerobot_train_packed_threads": (packed, 1, 2)}
     runs: dict[str, list[dict]] = {name: [] for name in settings}

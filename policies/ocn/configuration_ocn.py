@@ -87,7 +87,8 @@ class OCNConfig(SequenceConfig):
     # action (p^c and p_i held fixed, so only the terminations move). Where the continuing option and the
     # next one both explain the action, the NLL does not care which acts and a termination one step early
     # costs it nothing; this charges a termination by how well the option it ends would have done, so an
-    # option keeps the steps it can explain and ends where it cannot (0: the paper's loss).
+    # option keeps the steps it can explain and ends where it cannot (0: the paper's loss). Measured on
+    # S1 (results/imitation_s1_dart/, "Two more probes"): it made boundaries late and left the early ones.
     explained_termination_cost: float = 0.0
     # Added to the loss: this weight times KL(u || uniform), u being the batch's mean p^c over its
     # real frames (0: the paper's loss). Under the NLL alone, the option that first fits a little
@@ -99,7 +100,9 @@ class OCNConfig(SequenceConfig):
     # How many options' worth of usage the balance asks for, K (0: all n_options). The term becomes
     # max(0, ln K - H(u)), which is KL(u || uniform) = ln N - H(u) at K = N. At K < N it lets the
     # spare options go idle: KL to the uniform asks every one of 6 options for a sixth of the frames,
-    # so over 3 subtasks it puts each subtask on two options, and caps NMI near 0.76.
+    # so over 3 subtasks it puts each subtask on two options, and caps NMI near 0.76. Measured at T = 10
+    # (results/imitation_s1_6options_spare/): the tempered p^c keeps the shares' entropy above ln 3, so
+    # at K = 3 the term never charged, and two of 6 options took the three subtasks.
     usage_balance_options: int = 0
     # Added to the loss: this weight times the expected NLL under the mixture weights,
     # sum_k w_k (-log p_k(a_t)), averaged like the NLL (0: the paper's loss alone). Over discrete
