@@ -213,6 +213,12 @@ def test_forced_restart_rate_is_a_probability_for_ocn_only():
         make_policy(forced_restart_rate=0.1, hierarchy="hil")
 
 
+def termination_bias_grad_change(policy: OCNPolicy, plain_policy: OCNPolicy) -> torch.Tensor:
+    """What a loss term adds to the gradient on every option's termination bias: `policy`'s gradient
+    less that of `plain_policy` (the same weights and batch without the term), both after backward."""
+    return policy.core.options.b_out.grad[..., -1] - plain_policy.core.options.b_out.grad[..., -1]
+
+
 def test_termination_cost_adds_the_weighted_mean_termination_after_the_first_step_and_pushes_it_down():
     batch = make_batch(steps=5)
     batch[f"{ACTION}_is_pad"][0, 3:] = True  # window 0 has 3 real frames, so 2 after its first
@@ -228,7 +234,7 @@ def test_termination_cost_adds_the_weighted_mean_termination_after_the_first_ste
     assert stats["nll"] == pytest.approx(plain["nll"]) and stats["mean_end"] == pytest.approx(plain["mean_end"])
     loss.backward()
     # The cost's own gradient on each option's termination bias is positive: descent lowers every e_{i,t}.
-    cost_grad = policy.core.options.b_out.grad[..., -1] - plain_policy.core.options.b_out.grad[..., -1]
+    cost_grad = termination_bias_grad_change(policy, plain_policy)
     assert (cost_grad > 0).all()
     with pytest.raises(ValueError, match="termination_cost must be >= 0, got -1.0"):
         make_policy(termination_cost=-1.0)
@@ -264,7 +270,7 @@ def test_explained_termination_cost_joins_the_loss_and_lowers_the_terminations()
     assert stats["nll"] == pytest.approx(plain["nll"]) and stats["explained_terminations"] > 0
     torch.testing.assert_close(loss, plain_loss + 2.0 * torch.tensor(stats["explained_terminations"]))
     loss.backward()
-    cost_grad = policy.core.options.b_out.grad[..., -1] - plain_policy.core.options.b_out.grad[..., -1]
+    cost_grad = termination_bias_grad_change(policy, plain_policy)
     assert (cost_grad > 0).all()
     with pytest.raises(ValueError, match="explained_termination_cost must be >= 0, got -1.0"):
         make_policy(explained_termination_cost=-1.0)
