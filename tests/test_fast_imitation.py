@@ -29,6 +29,9 @@ def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
         assert sum(point["option_share"]) == pytest.approx(1.0, abs=1e-3)
         for thirds in point["option_by_subtask_third"].values():
             assert all(third is None or sum(third) == pytest.approx(1.0, abs=1e-3) for third in thirds)
+        # Where the parse puts the true boundaries, overall and by the move before each (Craft's actions).
+        offsets, by_move = point["boundary_offsets"], point["boundary_offsets_by_previous_action"]
+        assert offsets["boundaries"] == sum(entry["boundaries"] for entry in by_move.values()) > 0
     policy, preprocessor, _ = load_policy(tmp_path / "model")
     assert policy.config.usage_balance == 1.0 and policy.config.hidden_size == 16
     val = load_episodes(craft_dataset, split_episodes(craft_dataset, "val"))

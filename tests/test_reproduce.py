@@ -133,6 +133,13 @@ def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_an
     words = imitation.balance_options_words
     assert words({"usage_balance_options": 3}) == " over 3 options' worth of usage (`--policy.usage_balance_options`)"
     assert words({}) == words({"usage_balance_options": 0}) == ""
+    charged = overrides("--explained-termination-cost", "0.3")
+    assert charged == {"usage_balance": 1.0, "explained_termination_cost": 0.3}
+    assert imitation.run_dir(Path("w"), main, 1, charged) == Path(
+        "w/imitation_s1/3options_T10_usage_balance1.0_explained_termination_cost0.3/seed1")
+    assert imitation.explained_cost_words({"explained_termination_cost": 0.3}) == (
+        ", explained-termination cost 0.3 (`--policy.explained_termination_cost`)")
+    assert imitation.explained_cost_words({}) == ""
 
 
 def test_imitation_runs_can_be_limited_to_chosen_variants():

@@ -36,7 +36,8 @@ STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": Sequ
                   "usage_balance": OCNConfig.usage_balance, "usage_balance_options": OCNConfig.usage_balance_options,
                   "optimizer_lr": SequenceConfig.optimizer_lr,
                   "optimizer_weight_decay": SequenceConfig.optimizer_weight_decay,
-                  "window_start": SequenceConfig.window_start}
+                  "window_start": SequenceConfig.window_start,
+                  "explained_termination_cost": OCNConfig.explained_termination_cost}
 # The option-usage balance this study trains with unless told otherwise: without it, whether the
 # options split the subtasks within a run's steps is a matter of the run (README, results).
 STUDY_USAGE_BALANCE = 1.0
@@ -45,7 +46,7 @@ STUDY_USAGE_BALANCE = 1.0
 STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
               "lr_schedule", "obs_encoder", "usage_balance", "optimizer_lr", "rollouts", "settle_steps",
               "settle_termination_cost", "window_start", "optimizer_weight_decay", "dart_noise",
-              "usage_balance_options")
+              "usage_balance_options", "explained_termination_cost")
 # What a results file written before the study settled its runs was made with.
 UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0}
 # How the demonstrations were recorded, where a study may differ from `record_demos`'s defaults.
@@ -223,7 +224,7 @@ def markdown(result: dict[str, Any]) -> str:
         "controller learning-rate "
         f"scale {result['settings']['controller_lr_scale']}, option-usage balance "
         f"{result['settings'].get('usage_balance', STUDY_DEFAULTS['usage_balance'])}"
-        f"{balance_options_words(result['settings'])}, observation encoder "
+        f"{balance_options_words(result['settings'])}{explained_cost_words(result['settings'])}, observation encoder "
         f"`{result['settings']['obs_encoder']}`, {loading_words(result['settings'])}"
         f"{recording_words(result['settings'])}; {settling_words(result['settings'])} (a run's train time "
         "includes it); scores: `ocn-eval` "
@@ -377,6 +378,12 @@ def balance_options_words(settings: dict[str, Any]) -> str:
     return f" over {options} options' worth of usage (`--policy.usage_balance_options`)" if options else ""
 
 
+def explained_cost_words(settings: dict[str, Any]) -> str:
+    """The explained-termination cost the runs trained under from their first step, where there was one."""
+    cost = settings.get("explained_termination_cost", STUDY_DEFAULTS["explained_termination_cost"])
+    return f", explained-termination cost {cost:g} (`--policy.explained_termination_cost`)" if cost else ""
+
+
 def recording_words(settings: dict[str, Any]) -> str:
     """How the demonstrations were recorded, where that is not `record_demos`'s default."""
     noise = settings.get("dart_noise", RECORDING_DEFAULTS["dart_noise"])
@@ -421,6 +428,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--usage-balance-options", type=int, default=STUDY_DEFAULTS["usage_balance_options"],
                     help="options' worth of usage the balance asks for (OCNConfig.usage_balance_options; 0: all of "
                          "a run's options); below a variant's option count the spare options may idle")
+    s1.add_argument("--explained-termination-cost", type=float, default=STUDY_DEFAULTS["explained_termination_cost"],
+                    help="weight of the cost on terminations the ending option would have explained "
+                         "(OCNConfig.explained_termination_cost; 0 is the paper's loss), from a run's first step")
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
