@@ -56,17 +56,25 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
     finetuned = tmp_path / "work" / "finetune_s1"
     assert {"ocn_sparse_frames1500", "ocn_sparse_frames3000"} <= {path.name for path in finetuned.iterdir()}
 
+
+def test_s1_clone_trained_on_or_under_other_settings_is_finetuned_again(tmp_path):
+    # Apart from the end-to-end test above, so that the two can run on two pytest workers (-n 2).
+    first = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse")
+    assert first.returncode == 0, first.stderr[-2000:]
+    step = tmp_path / "work" / "imitation_s1" / "3options_T10" / "seed1" / "train" / "checkpoints" / "last" / (
+        "training_state/training_step.json")
+    assert json.loads(step.read_text())["step"] == 2
+
     # More clone steps extend the clone from its last checkpoint, and its finetuning is made again.
     longer = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--steps", "4")
     assert longer.returncode == 0, longer.stderr[-2000:]
     run_dir = tmp_path / "work" / "imitation_s1" / "3options_T10" / "seed1"
     assert "from step 2" in longer.stdout and "its clones were trained on since" in longer.stdout
-    step = run_dir / "train" / "checkpoints" / "last" / "training_state" / "training_step.json"
     assert json.loads(step.read_text())["step"] == 4
     timing = json.loads((run_dir / "train_wall_s.json").read_text())
     assert [invocation["from_step"] for invocation in timing["invocations"]] == [0, 2]
-    first = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())["runs"][0]
-    assert "--steps=4" in first["clone_commands"][0]
+    run = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())["runs"][0]
+    assert "--steps=4" in run["clone_commands"][0]
 
     # Under the usage balance the OCN clone is the imitation study's balanced run, and both the clone
     # and its finetuning get folders of their own beside the paper-loss ones.
