@@ -88,7 +88,8 @@ class OCNConfig(SequenceConfig):
     # next one both explain the action, the NLL does not care which acts and a termination one step early
     # costs it nothing; this charges a termination by how well the option it ends would have done, so an
     # option keeps the steps it can explain and ends where it cannot (0: the paper's loss). Measured on
-    # S1 (results/imitation_s1_dart/, "Two more probes"): it made boundaries late and left the early ones.
+    # S1 (results/imitation_s1_dart/, "Two more probes"): it made boundaries late and left the early ones;
+    # from step 0 it suppresses the switches instead (results/imitation_s1_dart/explained_cost_screen/).
     explained_termination_cost: float = 0.0
     # Added to the loss: this weight times KL(u || uniform), u being the batch's mean p^c over its
     # real frames (0: the paper's loss). Under the NLL alone, the option that first fits a little
