@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import CRAFT_REPO_ID
+from conftest import CRAFT_REPO_ID, DIAL_REPO_ID
+from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import load_episodes, split_episodes
 from tools.episode_parsing import load_policy, score_segmentations, segment_episodes
 from tools.fast_imitation import episode_batch, episode_draws, main, parse_overrides, split_table
@@ -123,3 +124,50 @@ def test_epoch_draws_take_every_frame_once_per_pass_and_replacement_draws_follow
     replacement = episode_draws(lengths, 4, "replacement", rng)
     drawn = np.concatenate([next(replacement) for _ in range(3000)])
     assert np.bincount(drawn, minlength=4) / drawn.size == pytest.approx(lengths / lengths.sum(), abs=0.01)
+
+
+def test_fast_imitation_trains_dial_on_standardised_episodes_and_scores_free_runs(dial_dataset, tmp_path, monkeypatch):
+    """On Dial the loop takes the world's settings from the dataset, standardises every training batch
+    with the dataset's statistics (as lerobot-train's preprocessor does), cuts long episodes at
+    --window-size, and reports free-run success per PIN."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from policies.ocn import OCNPolicy
+    from tools.worlds import dial
+
+    seen = []
+    forward = OCNPolicy.forward
+
+    def recording_forward(self, batch, *args, **kwargs):
+        seen.append({key: batch[key].clone() for key in (OBS_STATE, ACTION, f"{ACTION}_is_pad")})
+        return forward(self, batch, *args, **kwargs)
+
+    monkeypatch.setattr(OCNPolicy, "forward", recording_forward)
+    out, width = tmp_path / "dial.json", 30
+    argv = ["train", "--root", str(dial_dataset), "--repo-id", DIAL_REPO_ID, "--out", str(out), "--steps", "2",
+            "--batch-size", "4", "--eval-every", "2", "--window-size", str(width), "--rollouts", "1",
+            "--set", "hidden_size=16", "mlp_hidden_size=16", "--save", str(tmp_path / "model")]
+    assert main(argv) == 0
+    result = json.loads(out.read_text())
+    settings = result["settings"]
+    assert result["world"] == "dial" and settings["n_options"] == 4 and settings["temperature"] == 10.0
+    assert settings["obs_encoder"] == "identity" and settings["action_type"] == "continuous"
+    point = result["curve"][-1]
+    val_tasks = load_episodes(dial_dataset, split_episodes(dial_dataset, "val")).tasks
+    assert set(point["success_rate"]) == {dial().task_key(task) for task in val_tasks}
+    assert 0 <= point["mean_success_rate"] <= 1
+    assert all(0 <= point[key] <= 1 for key in ("f1_tol0", "f1_tol1", "nmi"))
+
+    stats = LeRobotDatasetMetadata(DIAL_REPO_ID, root=dial_dataset).stats
+    episodes = load_episodes(dial_dataset, split_episodes(dial_dataset, "train"))
+    assert episodes.lengths.max() > width  # the fixture's episodes are longer than the cut
+    assert len(seen) == 2
+    for batch in seen:
+        assert batch[OBS_STATE].shape[1] == width
+        # Each row, unstandardised with the dataset's statistics, is the first frames of a recorded episode.
+        raw = batch[OBS_STATE].numpy() * stats[OBS_STATE]["std"] + stats[OBS_STATE]["mean"]
+        raw_action = batch[ACTION].numpy() * stats[ACTION]["std"] + stats[ACTION]["mean"]
+        for state, action in zip(raw, raw_action, strict=True):
+            match = [e for e in range(len(episodes.lengths))
+                     if np.allclose(state, episodes.state[e, :width], atol=1e-4)]
+            assert len(match) == 1
+            np.testing.assert_allclose(action, episodes.action[match[0], :width], atol=1e-4)

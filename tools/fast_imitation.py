@@ -29,6 +29,17 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 CURVE_METRICS = ("nmi", "f1_tol1", "align_acc")
 
 
+def world_settings(world: str) -> list[str]:
+    """`FIELD=VALUE` policy settings of a world's imitation study, under `--set`: Craft's S1 main variant
+    (3 options, T = 10), Dial's reproduction (`tools.reproduce.dial`: 4 options, T = 10, identity
+    encoder, continuous actions, long episodes cut)."""
+    if world == "dial":
+        from tools.reproduce.dial import DIAL_POLICY, N_OPTIONS
+
+        return [f"n_options={N_OPTIONS}", "temperature=10.0", *(f"{key}={value}" for key, value in DIAL_POLICY.items())]
+    return ["n_options=3", "temperature=10.0"]
+
+
 def parse_overrides(pairs: list[str]) -> dict[str, Any]:
     """`key=value` pairs of OCNConfig fields, each value cast to its field's default's type."""
     from policies.ocn import OCNConfig
@@ -49,10 +60,10 @@ def parse_overrides(pairs: list[str]) -> dict[str, Any]:
     return overrides
 
 
-def episode_batch(split: Any, rows: np.ndarray) -> dict[str, Any]:
+def episode_batch(split: Any, rows: np.ndarray, width: int | None = None) -> dict[str, Any]:
     """A training batch of whole episodes (rows of an `ocn_data.episodes_table.EpisodeArrays`), as
-    `policy.forward` takes it, cut after the longest one."""
-    used = int(split.lengths[rows].max())
+    `policy.forward` takes it, cut after the longest one or after `width` frames."""
+    used = min(int(split.lengths[rows].max()), width or split.state.shape[1])
     return {OBS_STATE: torch.from_numpy(split.state[rows, :used]).float(),
             ACTION: torch.from_numpy(split.action[rows, :used]).float(),
             f"{ACTION}_is_pad": torch.from_numpy(~split.mask[rows, :used]),
@@ -86,29 +97,36 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     from ocn_data.episodes_table import load_episodes, split_episodes
     from policies.ocn import OCNConfig, OCNPolicy
     from tools.episode_parsing import parse_statistics, score_segmentations, segment_episodes
+    from tools.rollouts import free_run_success
+    from tools.worlds import world_of
 
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     torch.set_num_threads(args.threads)
+    world = world_of(args.root)
     meta = LeRobotDatasetMetadata(args.repo_id, root=args.root)
+    # Every batch row starts at its episode's first frame, which is how window_start="any" reads a row.
+    overrides = {**parse_overrides(args.set), "window_start": "any"}
     if args.init is None:
-        overrides = {"n_options": 3, "temperature": 10.0, **parse_overrides(args.set)}
-        config = OCNConfig(device="cpu", window_size=args.window_size, **overrides)
+        config = OCNConfig(device="cpu", window_size=args.window_size,
+                           **{**parse_overrides(world_settings(world.name)), **overrides})
         policy = make_policy(config, ds_meta=meta)
     else:
-        config = dataclasses.replace(PreTrainedConfig.from_pretrained(args.init), device="cpu",
-                                     **parse_overrides(args.set))
+        config = dataclasses.replace(PreTrainedConfig.from_pretrained(args.init), device="cpu", **overrides)
         policy = OCNPolicy.from_pretrained(args.init, config=config)
+    preprocessor, postprocessor = make_pre_post_processors(config, dataset_stats=meta.stats)
     optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
     train_split = load_episodes(args.root, split_episodes(args.root, "train"))
     val_split = load_episodes(args.root, split_episodes(args.root, "val"), max_episodes=args.val_episodes)
-    draw = episode_draws(train_split.lengths, args.batch_size, args.sampler, rng)
+    draw = episode_draws(np.minimum(train_split.lengths, config.window_size), args.batch_size, args.sampler, rng)
+    tasks = [world.task_key(task) for task in sorted(set(val_split.tasks), key=config.tasks.index)]
     curve: list[dict[str, Any]] = []
-    result = {"command": "python -m tools.fast_imitation " + " ".join(args.argv), "settings": dataclasses.asdict(config)
-              | {"seed": args.seed, "batch_size": args.batch_size, "steps": args.steps, "sampler": args.sampler}, "curve": curve}
+    result = {"command": "python -m tools.fast_imitation " + " ".join(args.argv), "world": world.name,
+              "settings": dataclasses.asdict(config) | {"seed": args.seed, "batch_size": args.batch_size,
+                                                        "steps": args.steps, "sampler": args.sampler}, "curve": curve}
     started, frames = time.perf_counter(), 0
     for step in range(1, args.steps + 1):
-        batch = episode_batch(train_split, next(draw))
+        batch = preprocessor(episode_batch(train_split, next(draw), config.window_size))
         policy.train()
         loss, stats = policy.forward(batch)
         optimizer.zero_grad()
@@ -118,7 +136,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         frames += stats["frames_used"]
         if step % args.eval_every == 0 or step == args.steps:
             policy.eval()
-            parses = segment_episodes(policy, lambda b: b, val_split)
+            parses = segment_episodes(policy, preprocessor, val_split)
             shape = parse_statistics(val_split, parses)
             point = {"step": step, **{key: stats[key] for key in ("nll", "mean_end", "usage_imbalance")},
                      **score_segmentations(val_split, parses),
@@ -127,15 +145,19 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
                      "boundary_offsets": shape["boundary_offsets"],
                      "boundary_offsets_by_previous_action": shape.get("boundary_offsets_by_previous_action"),
                      "train_frames_per_s": frames / (time.perf_counter() - started)}
+            if args.rollouts:
+                success = free_run_success(policy, preprocessor, postprocessor, world.rollouts(), tasks,
+                                           args.rollouts, args.seed)
+                point |= {"success_rate": success, "mean_success_rate": float(np.mean(list(success.values())))}
             curve.append(point)
             print(json.dumps(point), flush=True)
             args.out.parent.mkdir(parents=True, exist_ok=True)
             # default=str: a config read from a resumed lerobot-train checkpoint holds its pretrained_path as a Path.
             args.out.write_text(json.dumps(result, indent=1, default=str) + "\n")
-    if args.save is not None:
-        policy.save_pretrained(args.save)
-        for processor in make_pre_post_processors(config, dataset_stats=meta.stats):
-            processor.save_pretrained(args.save)
+            if args.save is not None:
+                policy.save_pretrained(args.save)
+                for processor in (preprocessor, postprocessor):
+                    processor.save_pretrained(args.save)
     return result
 
 
@@ -191,26 +213,31 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("train", help="train one seed and write its curve",
                          formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    run.add_argument("--root", type=Path, required=True, help="a record_demos Craft dataset with train/val splits")
+    run.add_argument("--root", type=Path, required=True,
+                     help="a record_demos dataset (Craft or Dial) with train/val splits")
     run.add_argument("--repo-id", default="local/craft_s1")
     run.add_argument("--out", type=Path, required=True, help="curve JSON, rewritten at every evaluation")
     run.add_argument("--steps", type=int, default=5000)
     run.add_argument("--batch-size", type=int, default=128, help="episodes per step")
-    run.add_argument("--window-size", type=int, default=24, help="longest episode (checked as under lerobot-train)")
+    run.add_argument("--window-size", type=int, default=24,
+                     help="frames per episode trained on; longer episodes train on their first ones")
     run.add_argument("--seed", type=int, default=1)
     run.add_argument("--sampler", choices=("replacement", "epoch"), default="replacement",
                      help="episodes of a batch drawn independently, or LeRobot's shuffled passes over all frames")
     run.add_argument("--eval-every", type=int, default=500)
     run.add_argument("--val-episodes", type=int, default=1200, help="validation episodes scored (the first ones)")
     run.add_argument("--threads", type=int, default=1)
+    run.add_argument("--rollouts", type=int, default=0,
+                     help="env episodes per validation task for free-run success at every evaluation (0: none)")
     run.add_argument("--init", type=Path, default=None,
                      help="continue an ocn pretrained_model folder (its config, then --set) instead of a fresh policy; "
                           "the optimizer starts afresh")
     run.add_argument("--save", type=Path, default=None,
-                     help="also save the trained policy here as a pretrained_model folder (for ocn-eval, ocn-view)")
+                     help="also save the policy here as a pretrained_model folder (for ocn-eval, ocn-view) at every "
+                          "evaluation, so the folder holds the latest one")
     run.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                     help="OCNConfig fields, over the imitation study's main variant (n_options=3, temperature=10.0) "
-                          "or over --init's config")
+                     help="OCNConfig fields, over the world's imitation settings (Craft: n_options=3, "
+                          "temperature=10.0; Dial: those of ocn-reproduce dial) or over --init's config")
     draw = sub.add_parser("plot", help="draw the curves of several runs into one PNG and print when each split")
     draw.add_argument("curves", type=Path, nargs="+")
     draw.add_argument("--png", type=Path, required=True)
