@@ -11,8 +11,10 @@ smallest dtype that holds the data exactly. `lerobot-train` then loads one row p
 
 The row keeps the episode's first `observation.state` and `action` (and the source's statistics of
 both), and the policy drops the packed columns from its features, so that its features, and hence its
-checkpoints, are those of the recorded dataset. LeRobot's processors pass the packed columns on without
-normalising them, so the view serves policies whose states and actions are not rescaled (Craft).
+checkpoints, are those of the recorded dataset. LeRobot's default normaliser passes the packed columns on
+as they are; the OCN processors add a step that normalises them frame by frame with the source's statistics
+(`policies.ocn.processor_ocn.PackedEpisodeNormalizerStep`), so the view serves rescaled states and actions
+(Dial) as well as Craft's stored ids.
 
 Episodes, their indices, tasks and splits are the source's, so `--dataset.episodes` names the same
 train split. LeRobot's sampler then draws episodes uniformly instead of in proportion to their length

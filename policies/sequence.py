@@ -59,8 +59,10 @@ class SequenceConfig(PreTrainedConfig):
       task restarts where it does not.
     - "packed": no windows; the dataset is a packed view (`python -m ocn_data.packed_view --width
       window_size`), one row per episode holding all its frames, so LeRobot loads one row per sample
-      instead of a window of frames (several times faster, `results/bench_train.md`). For states and
-      actions that are not rescaled (Craft): the processors do not see the packed columns.
+      instead of a window of frames (several times faster, `results/bench_train.md`). The
+      preprocessor normalises the packed columns as it does states and actions
+      (`policies.ocn.processor_ocn.PackedEpisodeNormalizerStep`), so Dial's standardised states and
+      actions train on it too.
     "episode" and "any" average the NLL over each window's real frames first, then over the windows
     that have any: sampling windows at every frame weights an episode by its length, so this is the
     per-frame mean NLL of the dataset in expectation. A packed view's rows are drawn uniformly, one
@@ -120,14 +122,6 @@ class SequenceConfig(PreTrainedConfig):
             raise ValueError(f"optimizer_weight_decay must be >= 0, got {self.optimizer_weight_decay}.")
         if not self.normalization_mapping:
             self.normalization_mapping = self._default_normalization()
-        rescaled = {name: mode for name, mode in self.normalization_mapping.items()
-                    if name in ("STATE", "ACTION") and mode is not NormalizationMode.IDENTITY}
-        if self.packed and rescaled:
-            raise ValueError(
-                f"window_start='packed' takes states and actions as stored, but this config rescales {rescaled}: "
-                "the processors normalise `observation.state` and `action`, not the packed columns. Train it "
-                "with window_start='episode'."
-            )
 
     def _default_normalization(self) -> dict[str, NormalizationMode]:
         """Craft states are symbolic ids and discrete actions are indices: neither may be rescaled."""

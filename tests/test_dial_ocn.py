@@ -171,6 +171,35 @@ def test_lerobot_train_checkpoint_reloads_and_runs_in_lerobot_eval(trained):
     assert 0.0 <= info["overall"]["avg_sum_reward"] <= 2.0
 
 
+def test_lerobot_train_on_the_dial_packed_view_normalises_its_columns_and_runs_in_lerobot_eval(dial_dataset):
+    """The packed view serves Dial's standardised states: its checkpoint's preprocessor carries the
+    packed-column normaliser, and stock lerobot-eval loads that pipeline and runs the policy."""
+    from ocn_data.packed_view import packed_view
+
+    width = int(_lengths(dial_dataset).max())
+    view = packed_view(dial_dataset, REPO_ID, width)
+    base = dial_dataset.parent / "packed"
+    run_cli(
+        "lerobot-train", "--policy.type=ocn", f"--dataset.repo_id={REPO_ID}", f"--dataset.root={view}",
+        "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false", "--env_eval_freq=0",
+        "--steps=2", "--batch_size=4", "--num_workers=0", "--policy.n_options=2",
+        *[f"--policy.{key}={value}" for key, value in DIAL.items()],
+        f"--policy.window_size={width}", "--policy.window_start=packed", "--policy.inference_mode=greedy",
+        f"--output_dir={base / 'train'}",
+        cwd=dial_dataset.parent,
+    )
+    checkpoint = base / "train" / "checkpoints" / "000002" / "pretrained_model"
+    steps = json.loads((checkpoint / "policy_preprocessor.json").read_text())["steps"]
+    assert [step["registry_name"] for step in steps][-2:] == ["normalizer_processor", "ocn_packed_episode_normalizer"]
+    run_cli(
+        "lerobot-eval", f"--policy.path={checkpoint}", "--env.type=dial", "--env.task=12", "--eval.n_episodes=1",
+        "--eval.batch_size=1", "--env.max_steps=20", "--eval.recording=true", "--policy.device=cpu",
+        f"--output_dir={base / 'eval'}",
+        cwd=dial_dataset.parent,
+    )
+    assert json.loads((base / "eval" / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
+
+
 def test_dial_rollouts_of_the_trained_policy(trained):
     policy, preprocessor, postprocessor = load_ocn(trained)
     rates = free_run_success(

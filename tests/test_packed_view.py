@@ -8,41 +8,47 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import CRAFT_REPO_ID
+from conftest import CRAFT_REPO_ID, DIAL_REPO_ID
 from lerobot.utils.constants import ACTION, OBS_STATE
-from ocn_data.episodes_table import read_info, split_episodes
+from ocn_data.episodes_table import load_episodes, read_info, split_episodes
 from ocn_data.packed_view import PACKED_KEYS, PACKED_STATE, compact_dtype, packed_view, packed_view_path
 from ocn_data.training_view import MARKER
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.sequence import training_windows
 
 WIDTH = 24
+# Each world's dataset fixture, repo id and policy settings (Dial's states and actions are standardised).
+WORLDS = {
+    "craft": ("craft_dataset", CRAFT_REPO_ID, {}),
+    "dial": ("dial_dataset", DIAL_REPO_ID, {"obs_encoder": "identity", "action_type": "continuous"}),
+}
 
 
-def loaded(root, episodes, config=None):
+def loaded(root, episodes, config=None, repo_id=CRAFT_REPO_ID):
     """The dataset at `root` as lerobot-train loads it for `config` (None: plain rows)."""
     from lerobot.datasets.factory import resolve_delta_timestamps
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 
-    delta = None if config is None else resolve_delta_timestamps(config, LeRobotDatasetMetadata(CRAFT_REPO_ID, root=root))
-    return LeRobotDataset(CRAFT_REPO_ID, root=root, episodes=episodes, delta_timestamps=delta)
+    delta = None if config is None else resolve_delta_timestamps(config, LeRobotDatasetMetadata(repo_id, root=root))
+    return LeRobotDataset(repo_id, root=root, episodes=episodes, delta_timestamps=delta)
 
 
-def built(config: OCNConfig, root, episodes=None) -> OCNPolicy:
+def built(config: OCNConfig, root, episodes=None, repo_id=CRAFT_REPO_ID) -> OCNPolicy:
     """The policy as lerobot-train builds it on the dataset at `root` (features and tasks from its metadata)."""
     from lerobot.policies.factory import make_policy
 
     torch.manual_seed(0)
-    return make_policy(config, ds_meta=loaded(root, episodes).meta)
+    return make_policy(config, ds_meta=loaded(root, episodes, repo_id=repo_id).meta)
 
 
 def processed_batch(dataset, policy) -> dict:
-    """Every sample of `dataset` in one batch as lerobot-train collates it, through the policy's preprocessor."""
+    """Every sample of `dataset` in one batch as lerobot-train collates it, through the policy's preprocessor
+    (with the dataset's statistics, as lerobot-train builds it)."""
     from lerobot.utils.collate import lerobot_collate_fn
 
     loader = torch.utils.data.DataLoader(dataset, batch_size=len(dataset), shuffle=False, collate_fn=lerobot_collate_fn)
     batch = next(iter(loader))
-    preprocessor, _ = make_ocn_pre_post_processors(policy.config, None)
+    preprocessor, _ = make_ocn_pre_post_processors(policy.config, dataset.meta.stats)
     return preprocessor(batch)
 
 
@@ -62,20 +68,26 @@ def test_the_packed_view_keeps_episodes_tasks_and_splits_in_one_row_each(craft_d
     assert packed_view_path(craft_dataset, WIDTH + 1) != view
 
 
-def test_packed_rows_unpack_to_the_episode_windows_and_give_the_same_loss(craft_dataset):
+@pytest.mark.parametrize("world", WORLDS)
+def test_packed_rows_unpack_to_the_episode_windows_and_give_the_same_loss(world, request):
     """Through LeRobot's loader and preprocessor: the train split's packed rows give the sequences that
     every frame's episode window gives, and the packed loss over all episodes equals the windowed loss
-    over all frames' windows (the per-frame mean NLL, each frame counted once)."""
-    train = list(split_episodes(craft_dataset, "train"))
-    view = packed_view(craft_dataset, CRAFT_REPO_ID, WIDTH)
-    settings = dict(device="cpu", window_size=WIDTH, hidden_size=16, mlp_hidden_size=16, temperature=1.0)
-    windowed = built(OCNConfig(**settings), craft_dataset, train)
-    packed = built(OCNConfig(**settings, window_start="packed"), view, train)
+    over all frames' windows (the per-frame mean NLL, each frame counted once). On Dial the preprocessor
+    standardises the packed columns exactly as it standardises the windows' states and actions."""
+    fixture, repo_id, world_settings = WORLDS[world]
+    root = request.getfixturevalue(fixture)
+    train = list(split_episodes(root, "train"))
+    width = int(load_episodes(root, split_episodes(root, "all")).lengths.max())
+    view = packed_view(root, repo_id, width)
+    settings = dict(device="cpu", window_size=width, hidden_size=16, mlp_hidden_size=16, temperature=1.0,
+                    **world_settings)
+    windowed = built(OCNConfig(**settings), root, train, repo_id)
+    packed = built(OCNConfig(**settings, window_start="packed"), view, train, repo_id)
     packed.load_state_dict(windowed.state_dict())
     assert set(packed.config.input_features) == {OBS_STATE}  # the packed columns are layout, not inputs
 
-    windows = processed_batch(loaded(craft_dataset, train, windowed.config), windowed)
-    rows = processed_batch(loaded(view, train, packed.config), packed)
+    windows = processed_batch(loaded(root, train, windowed.config, repo_id), windowed)
+    rows = processed_batch(loaded(view, train, packed.config, repo_id), packed)
     assert set(PACKED_KEYS) <= set(rows)
     mask_w, state_w, action_w = training_windows(windowed.config, windows)
     mask_p, state_p, action_p = training_windows(packed.config, rows)
@@ -109,8 +121,6 @@ def test_packed_training_names_its_misuses(craft_dataset):
         built(OCNConfig(device="cpu", window_size=WIDTH, window_start="packed"), craft_dataset)
     with pytest.raises(ValueError, match="built on a packed view"):
         built(OCNConfig(device="cpu", window_size=WIDTH), view)
-    with pytest.raises(ValueError, match="rescales"):
-        OCNConfig(device="cpu", window_start="packed", action_type="continuous")
     with pytest.raises(ValueError, match="Pass --width"):
         packed_view(craft_dataset, CRAFT_REPO_ID, 3)
     assert not packed_view_path(craft_dataset, 3).joinpath(MARKER).exists()

@@ -103,7 +103,7 @@ def balance_override(args: argparse.Namespace) -> dict[str, float]:
 def loading_override(args: argparse.Namespace) -> dict[str, str]:
     """`--policy.window_start` of every clone, spelled out only for the packed view (`--window-start
     packed`), so that runs made before the option existed keep their command. Studies without the
-    option (Dial, whose rescaled states the packed view cannot take) load windows."""
+    option load windows."""
     start = getattr(args, "window_start", imitation.STUDY_DEFAULTS["window_start"])
     return {} if start == imitation.STUDY_DEFAULTS["window_start"] else {"window_start": start}
 
