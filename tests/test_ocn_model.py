@@ -499,10 +499,13 @@ def test_trailing_padding_is_cut_without_changing_loss_or_gradients():
         torch.testing.assert_close(trimmed, reference)
 
 
-def test_projecting_only_real_frames_changes_no_output_read_and_no_gradient():
-    policy = make_policy(window_start="any")
+@pytest.mark.parametrize("hierarchy", ["ocn", "moe", "hil"])
+def test_computing_only_real_frames_changes_no_output_read_and_no_gradient(hierarchy):
+    """Training computes the real frames alone: projected alone, and each step over the rows still in
+    their episode, longest first (`OCNCore.unroll_frames`). Rows of four lengths, in no order."""
+    policy = make_policy(window_start="any", hierarchy=hierarchy, skill_length=2)
     batch = make_batch()
-    batch[f"{ACTION}_is_pad"][0, 3:] = batch[f"{ACTION}_is_pad"][2, 1:] = True
+    batch[f"{ACTION}_is_pad"][0, 3:] = batch[f"{ACTION}_is_pad"][2, 1:] = batch[f"{ACTION}_is_pad"][3, 4:] = True
     mask, state, action = training_windows(policy.config, batch)
     results = []
     for real in (None, mask):
@@ -517,6 +520,22 @@ def test_projecting_only_real_frames_changes_no_output_read_and_no_gradient():
         torch.testing.assert_close(getattr(only_real, field)[time_major], getattr(every, field)[time_major], msg=field)
     for got, expected in zip(real_grads, every_grads, strict=True):
         torch.testing.assert_close(got, expected)
+    assert not only_real.p_c[~time_major].any()  # the frames after a row's end are not computed
+
+
+def test_unroll_frames_names_rows_out_of_order():
+    policy = make_policy()
+    core = policy.core
+    x = torch.randn(3, 2, STATE_DIM)
+    start = torch.zeros(3, 2, dtype=torch.bool)
+    start[0] = True
+    initial = core.initial_state(torch.tensor([0, 1]))
+    shorter_first = torch.tensor([[True, True], [False, True], [False, True]])
+    with pytest.raises(ValueError, match="longest first"):
+        core.unroll_frames(x, initial, start, shorter_first)
+    gap = torch.tensor([[True, True], [False, True], [True, False]])
+    with pytest.raises(ValueError, match="real frames first"):
+        core.unroll_frames(x, initial, start, gap)
 
 
 def test_any_windows_start_where_they_are_sampled():

@@ -133,6 +133,31 @@ def train_frames_per_second(policy: OCNPolicy, batch: dict, repeats: int = 3) ->
     return frames / min(times)
 
 
+@contextmanager
+def computing_every_frame(policy: OCNPolicy) -> Iterator[OCNPolicy]:
+    """Within, the policy's training forward computes every frame of its windows, padding included,
+    for the same loss (tested): the update as it was before it computed the real frames alone
+    (`OCNCore.unroll_frames`), the baseline of that speed-up."""
+    unroll = policy._unroll
+    policy._unroll = lambda state, tasks, real=None: unroll(state, tasks)
+    try:
+        yield policy
+    finally:
+        del policy._unroll
+
+
+def compare_real_vs_every_frame(policy: OCNPolicy, batch: dict, rounds: int = 3) -> dict[str, float]:
+    """Training throughput (frames of the padded batch per second) computing the real frames alone
+    against computing every frame, same weights and batch, measured in alternation for `rounds` rounds."""
+    best = {"real": 0.0, "every": 0.0}
+    for _ in range(rounds):
+        best["real"] = max(best["real"], train_frames_per_second(policy, batch, repeats=1))
+        with computing_every_frame(policy):
+            best["every"] = max(best["every"], train_frames_per_second(policy, batch, repeats=1))
+    return {"real_frames_only_per_s": best["real"], "every_frame_per_s": best["every"],
+            "speedup": best["real"] / best["every"]}
+
+
 def compare_stacked_vs_loop(
     batch_size: int = 512,
     window: int = 32,

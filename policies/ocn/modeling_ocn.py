@@ -20,7 +20,7 @@ from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
 from .heads import expected_log_prob, make_action_head, mixture_log_prob
 from .latent_options import LatentDecoderPool
-from .recurrence import HardState, OCNCore, OCNState, StepOutput
+from .recurrence import HardState, OCNCore, OCNState, StepOutput, longest_first
 
 
 @dataclass
@@ -124,14 +124,21 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
 
     def _unroll(self, state: Tensor, tasks: Sequence[str], real: Tensor | None = None) -> StepOutput:
         """Recurrence over windows [B, T, S] that each start an episode; outputs are time-major.
-        `real` [B, T]: the frames whose outputs are read (None: all); the others' are arbitrary."""
+        `real` [B, T]: the frames whose outputs are read, each row's first ones (None: all); then only
+        those are computed (`OCNCore.unroll_frames`) and the others' outputs are zeros."""
         batch, steps = state.shape[:2]
-        # Transpose the stored state rather than the (wider) features: the encoder then writes time-major.
-        x = self.encoder(state.transpose(0, 1).contiguous())
+        task_index = self.task_index(tasks, batch)
         start = torch.zeros(steps, batch, dtype=torch.bool, device=state.device)
         start[0] = True
-        initial = self.core.initial_state(self.task_index(tasks, batch))
-        return self.core.unroll(x, initial, start, None if real is None else real.transpose(0, 1))[1]
+        if real is None:
+            # Transpose the stored state rather than the (wider) features: the encoder then writes time-major.
+            x = self.encoder(state.transpose(0, 1).contiguous())
+            return self.core.unroll(x, self.core.initial_state(task_index), start)[1]
+        order, inverse = longest_first(real)
+        x = self.encoder(state[order].transpose(0, 1).contiguous())
+        out = self.core.unroll_frames(x, self.core.initial_state(task_index[order]), start, real[order].transpose(0, 1))
+        return StepOutput(out.weights[:, inverse], out.params[:, :, inverse], out.p_c[:, inverse], out.end[:, inverse],
+                          out.option_end[:, inverse])
 
     def _component_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
         """log p_k(a_t) [T, 2N, B] of each mixture component, for time-major outputs and batch-major

@@ -78,6 +78,25 @@ def scatter_frames(rows: Tensor, real: Tensor) -> Tensor:
     return out.transpose(1, 2)
 
 
+def state_rows(state: OCNState, rows: Tensor | slice) -> OCNState:
+    """The recurrent state of the batch rows `rows` (an index or a slice)."""
+    return OCNState(state.controller_h[rows], state.p_c[rows], state.option_h[:, rows], state.steps[rows])
+
+
+def padded_rows(out: StepOutput, batch: int) -> StepOutput:
+    """A step's outputs for the first rows of a batch as outputs for all `batch` rows, zeros for the rest."""
+
+    def pad(field: Tensor, dim: int) -> Tensor:
+        missing = batch - field.shape[dim]
+        if not missing:
+            return field
+        shape = list(field.shape)
+        shape[dim] = missing
+        return torch.cat([field, field.new_zeros(shape)], dim)
+
+    return StepOutput(pad(out.weights, 0), pad(out.params, 1), pad(out.p_c, 0), pad(out.end, 0), pad(out.option_end, 0))
+
+
 class Projected(NamedTuple):
     """First-layer observation terms: controller [..., 1, B, d_mlp], options [..., N, B, d_mlp]."""
 
@@ -266,10 +285,9 @@ class OCNCore(nn.Module):
         loss reads, and this matmul over every frame is the largest single cost of a training step."""
         return Projected(*(scatter_frames(part, real) for part in self.project(x[real])))
 
-    def unroll(self, x: Tensor, state: OCNState, start: Tensor, real: Tensor | None = None) -> tuple[OCNState, StepOutput]:
-        """Run over time-major x [T, B, obs_dim] with `start` [T, B]; outputs are stacked over T.
-        `real` [T, B]: the frames whose outputs will be read (None: all); the others' are arbitrary."""
-        projected = self.project(x) if real is None else self.project_frames(x, real)
+    def unroll(self, x: Tensor, state: OCNState, start: Tensor) -> tuple[OCNState, StepOutput]:
+        """Run over time-major x [T, B, obs_dim] with `start` [T, B]; outputs are stacked over T."""
+        projected = self.project(x)
         # unbind, not indexing: indexing's backward would zero-fill the whole window at every step.
         steps = zip(projected.controller.unbind(0), projected.options.unbind(0), start.unbind(0), strict=True)
         outputs = []
@@ -277,3 +295,32 @@ class OCNCore(nn.Module):
             state, out = self.step(state, Projected(controller_x, options_x), step_start)
             outputs.append(out)
         return state, StepOutput(*(torch.stack(field) for field in zip(*outputs, strict=True)))
+
+    def unroll_frames(self, x: Tensor, state: OCNState, start: Tensor, real: Tensor) -> StepOutput:
+        """`unroll`'s outputs at the real frames `real` [T, B] of time-major x, zeros at the others, computing
+        the real frames only: training windows are mostly padding after their episode's end.
+
+        Each row's real frames must come first and the rows longest first (`longest_first` orders a batch
+        so). The first layer then projects the real frames alone (`project_frames`) and each step runs only
+        the rows still in their episode, a prefix of the batch that shrinks as episodes end.
+        """
+        lengths = real.sum(0)
+        steps = torch.arange(real.shape[0], device=real.device)
+        if (lengths[1:] > lengths[:-1]).any() or not torch.equal(real, steps[:, None] < lengths):
+            raise ValueError("unroll_frames needs each row's real frames first and the rows longest first.")
+        projected = self.project_frames(x, real)
+        running = real.sum(1).tolist()
+        frames = zip(projected.controller.unbind(0), projected.options.unbind(0), start.unbind(0), running, strict=True)
+        outputs = []
+        for controller_x, options_x, step_start, rows in frames:
+            state = state_rows(state, slice(0, rows))
+            state, out = self.step(state, Projected(controller_x[:, :rows], options_x[:, :rows]), step_start[:rows])
+            outputs.append(padded_rows(out, real.shape[1]))
+        return StepOutput(*(torch.stack(field) for field in zip(*outputs, strict=True)))
+
+
+def longest_first(real: Tensor) -> tuple[Tensor, Tensor]:
+    """The order of the rows of `real` [B, T] (batch-major) by their number of real frames, longest first,
+    and its inverse, which puts outputs computed in that order back in the batch's order."""
+    order = torch.argsort(real.sum(1), descending=True, stable=True)
+    return order, torch.argsort(order)
