@@ -21,7 +21,11 @@ train split. LeRobot's sampler then draws episodes uniformly instead of in propo
 (one row each): the loss is the mean NLL over the batch's real frames (`policies.sequence.batch_mean`),
 the same per-frame mean in expectation.
 
-`python -m ocn_data.packed_view --root DATASET --width W` makes (or checks) the view.
+A dataset whose longest episodes exceed the width (Dial's rare long DART episodes) packs with
+`cut_long`: those episodes keep their first `width` frames, the frames `--policy.skip_long_episodes`
+trains them on under windows, in a view of its own.
+
+`python -m ocn_data.packed_view --root DATASET --width W [--cut-long-episodes]` makes (or checks) the view.
 """
 
 from __future__ import annotations
@@ -48,10 +52,11 @@ PACKED_KEYS = (PACKED_STATE, PACKED_ACTION, PACKED_LENGTH)
 CHUNK_EPISODES = 5000
 
 
-def packed_view_path(root: Path, width: int) -> Path:
-    """Where the view of the dataset at `root` packed to `width` frames lives: a sibling folder."""
+def packed_view_path(root: Path, width: int, cut_long: bool = False) -> Path:
+    """Where the view of the dataset at `root` packed to `width` frames lives: a sibling folder
+    (`_cut` when its longer episodes are cut to their first `width` frames)."""
     root = Path(root)
-    return root.parent / f"{root.name}_packed{width}"
+    return root.parent / f"{root.name}_packed{width}{'_cut' if cut_long else ''}"
 
 
 def compact_dtype(values: np.ndarray) -> np.dtype:
@@ -90,16 +95,19 @@ def packed_features(source: dict, width: int, state: np.dtype, action: np.dtype)
     }
 
 
-def write_packed(root: Path, repo_id: str, view: Path, width: int) -> None:
-    """Write the packed view of the dataset at `root` into the new folder `view`."""
+def write_packed(root: Path, repo_id: str, view: Path, width: int, cut_long: bool = False) -> None:
+    """Write the packed view of the dataset at `root` into the new folder `view`; `cut_long` keeps the
+    first `width` frames of longer episodes, as `--policy.skip_long_episodes` trains them on windows."""
     info = read_info(root)
     episodes = load_episodes(root, split_episodes(root, "all"))
     longest = int(episodes.lengths.max())
-    if longest > width:
+    if longest > width and not cut_long:
         raise ValueError(f"{root} has episodes of up to {longest} frames; a packed view of width {width} cannot hold "
-                         f"them. Pass --width {longest} or more (and train with --policy.window_size equal to it).")
+                         f"them. Pass --width {longest} or more (and train with --policy.window_size equal to it), "
+                         f"or --cut-long-episodes to keep their first {width} frames.")
     count = len(episodes.lengths)
-    state, action = (pad_to_width(values, episodes.mask, width) for values in (episodes.state, episodes.action))
+    mask = episodes.mask[:, :width]
+    state, action = (pad_to_width(values[:, :width], mask, width) for values in (episodes.state, episodes.action))
     print(f"writing the packed view of {root} ({count} episodes, width {width}) to {view}", flush=True)
     writer = ColumnarDatasetWriter(view, repo_id, info["fps"], packed_features(info["features"], width, state.dtype,
                                    action.dtype), robot_type=info.get("robot_type"))
@@ -113,7 +121,7 @@ def write_packed(root: Path, repo_id: str, view: Path, width: int) -> None:
                 ACTION: episodes.action[rows, 0],
                 PACKED_STATE: state[rows].reshape(n, -1),
                 PACKED_ACTION: action[rows].reshape(n, -1),
-                PACKED_LENGTH: episodes.lengths[rows, None].astype(np.int64),
+                PACKED_LENGTH: np.minimum(episodes.lengths[rows, None], width).astype(np.int64),
             },
         ))
     # The source's statistics of state and action (the view's own cover first frames only) and its splits.
@@ -125,11 +133,13 @@ def write_packed(root: Path, repo_id: str, view: Path, width: int) -> None:
     write_info(view_info, view)
 
 
-def packed_view(root: Path, repo_id: str, width: int) -> Path:
-    """The packed view of the dataset at `root`, made if missing or out of date; returns its root."""
+def packed_view(root: Path, repo_id: str, width: int, cut_long: bool = False) -> Path:
+    """The packed view of the dataset at `root`, made if missing or out of date; returns its root.
+    `cut_long`: episodes longer than `width` keep their first `width` frames (else they are an error)."""
     root = Path(root)
-    return derived_dataset(root, packed_view_path(root, width), {"packed_width": width},
-                           lambda view: write_packed(root, repo_id, view, width))
+    settings = {"packed_width": width, **({"cut_long_episodes": True} if cut_long else {})}
+    return derived_dataset(root, packed_view_path(root, width, cut_long), settings,
+                           lambda view: write_packed(root, repo_id, view, width, cut_long))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -139,9 +149,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repo-id", default="local/craft", help="the dataset's repo id")
     parser.add_argument("--width", type=int, required=True,
                         help="frames per packed episode: the --policy.window_size to train with (at least the "
-                             "longest episode)")
+                             "longest episode, unless --cut-long-episodes)")
+    parser.add_argument("--cut-long-episodes", action="store_true",
+                        help="keep the first --width frames of longer episodes (what --policy.skip_long_episodes "
+                             "trains on windows), in a view of its own (`_cut`)")
     args = parser.parse_args(argv)
-    print(packed_view(args.root, args.repo_id, args.width))
+    print(packed_view(args.root, args.repo_id, args.width, args.cut_long_episodes))
     return 0
 
 

@@ -11,7 +11,7 @@ import torch
 from conftest import CRAFT_REPO_ID, DIAL_REPO_ID
 from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import load_episodes, read_info, split_episodes
-from ocn_data.packed_view import PACKED_KEYS, PACKED_STATE, compact_dtype, packed_view, packed_view_path
+from ocn_data.packed_view import PACKED_KEYS, PACKED_LENGTH, PACKED_STATE, compact_dtype, packed_view, packed_view_path
 from ocn_data.training_view import MARKER
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.sequence import training_windows
@@ -124,3 +124,25 @@ def test_packed_training_names_its_misuses(craft_dataset):
     with pytest.raises(ValueError, match="Pass --width"):
         packed_view(craft_dataset, CRAFT_REPO_ID, 3)
     assert not packed_view_path(craft_dataset, 3).joinpath(MARKER).exists()
+
+
+def test_long_episodes_keep_their_first_frames_in_a_cut_view(dial_dataset):
+    """`cut_long`: episodes longer than the width keep the first `width` frames (what skip_long_episodes
+    trains on windows), the others whole, in a folder of its own; without it they are an error."""
+    episodes = load_episodes(dial_dataset, split_episodes(dial_dataset, "all"))
+    width = int(np.median(episodes.lengths))
+    assert (episodes.lengths > width).any() and (episodes.lengths <= width).any()
+    with pytest.raises(ValueError, match="--cut-long-episodes"):
+        packed_view(dial_dataset, DIAL_REPO_ID, width)
+    view = packed_view(dial_dataset, DIAL_REPO_ID, width, cut_long=True)
+    assert view == packed_view_path(dial_dataset, width, cut_long=True) != packed_view_path(dial_dataset, width)
+    assert json.loads((view / MARKER).read_text())["cut_long_episodes"] is True
+    rows = loaded(view, None, repo_id=DIAL_REPO_ID)
+    state_dim = episodes.state.shape[-1]
+    for e, length in enumerate(episodes.lengths.tolist()):
+        row = rows[e]
+        kept = min(length, width)
+        assert int(row[PACKED_LENGTH]) == kept
+        packed_state = row[PACKED_STATE].numpy().reshape(width, state_dim)
+        np.testing.assert_array_equal(packed_state[:kept], episodes.state[e, :kept])
+        assert not packed_state[kept:].any()

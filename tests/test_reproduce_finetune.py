@@ -248,7 +248,10 @@ def test_packed_clones_load_the_packed_view_in_folders_of_their_own_and_share_im
     assert finetune.clone_dir(parsed("s1", "--window-start", "packed"), SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
     assert shared.parent.name == "3options_T10_usage_balance1.0_packed"
     assert parsing.run_dir(parsed("parsing-s1", "--window-start", "packed"), methods["ompn"], 1).parent.name == "ompn_packed"
-    assert not hasattr(parsed("dial"), "window_start")  # Dial's rescaled states keep windows
+    # Dial's clones take the packed view too (its normaliser standardises the packed columns).
+    assert parsed("dial").window_start == "episode"
+    assert dial.clone_dir(parsed("dial", "--window-start", "packed"), methods["ocn"], 1) == (
+        tmp_path / "clone" / "dial2" / "ocn_usage_balance1.0_packed" / "seed1")
 
 
 def test_dart_noise_reaches_every_clones_recording_and_the_results_header(tmp_path):

@@ -219,5 +219,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         window_help="frames per episode window; longer episodes (under 2%% of the 2-digit demos) train on their first",
         episodes_help="12 PINs x 500: 6000 demonstrations in all",
     )
+    imitation.add_window_start_argument(parser)
     parser.add_argument("--results", type=Path, default=RESULTS)
     parser.set_defaults(func=reproduce_dial)

@@ -438,7 +438,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def add_window_start_argument(parser: argparse.ArgumentParser) -> None:
-    """`--window-start` of the Craft studies that train with `lerobot-train` (`--policy.window_start`)."""
+    """`--window-start` of the studies that train with `lerobot-train` (`--policy.window_start`)."""
     parser.add_argument("--window-start", choices=("episode", "packed"), default=STUDY_DEFAULTS["window_start"],
                         help="how lerobot-train loads episodes: LeRobot's windows, or one row per episode from the "
                              "packed view (several times faster; README, the packed view)")

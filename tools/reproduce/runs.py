@@ -120,16 +120,18 @@ def train_command(
 def training_data(settings: TrainSettings, data: Path, repo_id: str, overrides: dict[str, Any],
                   init: Path | None) -> Path:
     """The view of the dataset `data` that a run trains on: its packed view (`ocn_data.packed_view`) for
-    a policy with window_start "packed" (set here or in `init`'s config), else its training view
+    a policy with window_start "packed" (set here or in `init`'s config; its longer episodes cut where
+    the policy skips them on windows, `skip_long_episodes`), else its training view
     (`ocn_data.training_view`: the same windows as the recording, loaded faster)."""
     from ocn_data.packed_view import packed_view
     from ocn_data.training_view import training_view
 
-    window_start = {**settings.policy, **overrides}.get("window_start")
-    if window_start is None and init is not None:
-        window_start = json.loads((init / "config.json").read_text()).get("window_start")
-    if window_start == "packed":
-        return packed_view(data, repo_id, settings.window_size)
+    policy = {**settings.policy, **overrides}
+    if init is not None:
+        policy = {**json.loads((init / "config.json").read_text()), **policy}
+    if policy.get("window_start") == "packed":
+        cut_long = str(policy.get("skip_long_episodes", False)).lower() == "true"
+        return packed_view(data, repo_id, settings.window_size, cut_long)
     return training_view(data, repo_id)
 
 
