@@ -171,3 +171,19 @@ def test_fast_imitation_trains_dial_on_standardised_episodes_and_scores_free_run
                      if np.allclose(state, episodes.state[e, :width], atol=1e-4)]
             assert len(match) == 1
             np.testing.assert_allclose(action, episodes.action[match[0], :width], atol=1e-4)
+
+
+def test_plot_draws_the_chosen_metrics_and_names_a_missing_one(tmp_path):
+    path = tmp_path / "run.json"
+    points = [{"step": 250 * (k + 1), "nmi": 1.0, "f1_tol1": 1.0, "align_acc": 1.0, "nll": 2.0 - k,
+               "mean_success_rate": 0.5 * k} for k in range(3)]
+    path.write_text(json.dumps({"settings": {"batch_size": 32}, "curve": points}))
+    png = tmp_path / "success.png"
+    assert main(["plot", str(path), "--png", str(png), "--metrics", "mean_success_rate,nll"]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert split_table([path], 0.9, ("mean_success_rate", "nll")).splitlines()[2].endswith("| 750 | 1.000 | 0.000 |")
+    without = tmp_path / "no_rollouts.json"
+    without.write_text(json.dumps({"settings": {"batch_size": 32}, "curve": [{k: v for k, v in points[0].items()
+                                                                            if k != "mean_success_rate"}]}))
+    with pytest.raises(SystemExit, match="no mean_success_rate"):
+        main(["plot", str(without), "--png", str(tmp_path / "x.png"), "--metrics", "mean_success_rate"])

@@ -27,6 +27,8 @@ import torch
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 CURVE_METRICS = ("nmi", "f1_tol1", "align_acc")
+# Curve metrics that are fractions, drawn on a 0-1 axis (the others, such as nll, on their own range).
+FRACTIONS = {"nmi", "f1_tol0", "f1_tol1", "align_acc", "mean_success_rate", "mean_end"}
 
 
 def world_settings(world: str) -> list[str]:
@@ -161,11 +163,11 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
-def split_table(paths: list[Path], threshold: float) -> str:
+def split_table(paths: list[Path], threshold: float, metrics: tuple[str, ...] = CURVE_METRICS) -> str:
     """Markdown: per curve file, the first scored step whose NMI reaches `threshold` (when the options
-    split) and the training episodes drawn by then, and the last point's metrics."""
+    split) and the training episodes drawn by then, and the last point's `metrics`."""
     lines = [f"| run | batch | first step with NMI >= {threshold:g} | episodes drawn by then | last step | "
-             + " | ".join(CURVE_METRICS) + " |", "|---|---|---|---|---|" + "---|" * len(CURVE_METRICS)]
+             + " | ".join(metrics) + " |", "|---|---|---|---|---|" + "---|" * len(metrics)]
     for path in paths:
         result = json.loads(path.read_text())
         curve, batch = result["curve"], result["settings"]["batch_size"]
@@ -173,35 +175,41 @@ def split_table(paths: list[Path], threshold: float) -> str:
         when = "not within the run | -" if split is None else f"{split} | {split * batch:,}"
         last = curve[-1]
         lines.append(f"| {path.stem} | {batch} | {when} | {last['step']} | "
-                     + " | ".join(f"{last[metric]:.3f}" for metric in CURVE_METRICS) + " |")
+                     + " | ".join(f"{last[metric]:.3f}" for metric in metrics) + " |")
     return "\n".join(lines)
 
 
 def plot(args: argparse.Namespace) -> None:
-    """One panel per metric, one line per curve file, labelled by the file's stem, against training
-    steps or (`--x episodes`) the episodes drawn, which compares runs of different batch sizes;
-    prints `split_table`."""
+    """One panel per metric of `--metrics`, one line per curve file, labelled by the file's stem,
+    against training steps or (`--x episodes`) the episodes drawn, which compares runs of different
+    batch sizes; prints `split_table`."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(CURVE_METRICS), figsize=(4.5 * len(CURVE_METRICS), 3.6))
-    for path in args.curves:
-        result = json.loads(path.read_text())
+    metrics = tuple(args.metrics.split(","))
+    curves = {path: json.loads(path.read_text()) for path in args.curves}
+    for path, result in curves.items():
+        missing = [metric for metric in metrics if metric not in result["curve"][-1]]
+        if missing:
+            raise SystemExit(f"{path} has no {', '.join(missing)} in its curve (free-run success needs --rollouts).")
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.5 * len(metrics), 3.6), squeeze=False)
+    for path, result in curves.items():
         scale = result["settings"]["batch_size"] if args.x == "episodes" else 1
         curve = result["curve"]
-        for ax, metric in zip(axes, CURVE_METRICS, strict=True):
+        for ax, metric in zip(axes[0], metrics, strict=True):
             ax.plot([p["step"] * scale for p in curve], [p[metric] for p in curve], marker=".", label=path.stem)
-    for ax, metric in zip(axes, CURVE_METRICS, strict=True):
+    for ax, metric in zip(axes[0], metrics, strict=True):
         ax.set_title(metric)
         ax.set_xlabel("training step" if args.x == "step" else "training episodes drawn")
-        ax.set_ylim(0, 1.02)
-    axes[-1].legend(fontsize=7)
+        if metric in FRACTIONS:
+            ax.set_ylim(0, 1.02)
+    axes[0][-1].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(args.png, dpi=110)
     plt.close(fig)
-    print(split_table(args.curves, args.split_nmi))
+    print(split_table(args.curves, args.split_nmi, metrics))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -243,6 +251,9 @@ def main(argv: list[str] | None = None) -> int:
     draw.add_argument("--png", type=Path, required=True)
     draw.add_argument("--x", choices=("step", "episodes"), default="step",
                       help="the curves' axis: training steps, or episodes drawn (steps times the run's batch size)")
+    draw.add_argument("--metrics", default=",".join(CURVE_METRICS),
+                      help="comma-separated curve metrics, one panel each (also nll, mean_end, f1_tol0, and "
+                           "mean_success_rate for runs trained with --rollouts)")
     draw.add_argument("--split-nmi", type=float, default=0.9,
                       help="the NMI at which the printed table counts the options as split")
     args = parser.parse_args(argv)
