@@ -258,7 +258,7 @@ def bench_dial_expert(pins: int, noise_levels: tuple[float, ...]) -> dict:
 
 
 def run_dial_bench(args: argparse.Namespace) -> None:
-    from envs.dial.expert import NOISE_LEVELS
+    from envs.dial.expert import NOISE_LEVELS, REFERENCE_NOISE_LEVELS
 
     result = {
         "benchmark": "ocn-bench dial",
@@ -267,8 +267,13 @@ def run_dial_bench(args: argparse.Namespace) -> None:
         "env": bench_dial_physics(args.steps),
         "expert": bench_dial_expert(args.pins, (0.0,)),
         "expert_dart": bench_dial_expert(args.pins, NOISE_LEVELS),
+        "expert_reference_dart": bench_dial_expert(args.pins, REFERENCE_NOISE_LEVELS),
     }
     _write(result, Path(args.out), _dial_markdown(result))
+
+
+def _levels(expert: dict) -> str:
+    return ", ".join(f"{level:g}" for level in expert["noise_levels"])
 
 
 def _dial_markdown(r: dict) -> str:
@@ -277,7 +282,11 @@ def _dial_markdown(r: dict) -> str:
     rows = "".join(
         f"| expert success, {x['pins']} random two-digit PINs from 1, 2, 4, 8, {name} | **{x['success']:.3f}** "
         f"(median {x['steps_median']:.0f} steps, p99 {x['steps_p99']:.0f}, max {x['steps_max']} of {x['step_limit']}) |\n"
-        for name, x in (("noise-free", r["expert"]), ("with DART noise as recorded (levels 0, 0.2, 0.3)", r["expert_dart"]))
+        for name, x in (("noise-free", r["expert"]),
+                        (f"with DART noise as recorded (levels {_levels(r['expert_dart'])})", r["expert_dart"]),
+                        *([(f"with the reference demonstrations' DART noise (levels "
+                            f"{_levels(r['expert_reference_dart'])}; not recorded)", r["expert_reference_dart"])]
+                          if "expert_reference_dart" in r else []))
     )
     return (
         "# Dial env speed and expert success\n\n"

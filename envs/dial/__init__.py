@@ -1,6 +1,6 @@
 """Dial (paper 4.2, OMPN / TACO setup): a JACO arm dials PINs on a 10-key pad in MuJoCo.
 
-Batched simulator, gym wrappers, IK poses and the scripted PID expert; the scene is built from the
+Batched simulator, gym wrappers, IK poses and the scripted PD expert; the scene is built from the
 JACO model that the `dm-control` package ships (see envs.dial.scene).
 """
 

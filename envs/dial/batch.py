@@ -142,6 +142,14 @@ class DialBatch(EpisodeBatch):
             self.bias[i] = data.qfrc_bias
             self.tip[i] = data.site_xpos[self._site]
 
+    def mass_matrices(self) -> np.ndarray:
+        """Joint-space inertia M(q) of every env (n, 9, 9), as of the last physics step (like ``bias``);
+        computed on request, since only the expert needs it."""
+        mass = np.zeros((self.num_envs, N_JOINTS, N_JOINTS))
+        for i, data in enumerate(self.data):
+            mujoco.mj_fullM(self.model, data, mass[i])
+        return mass
+
     def _key_distance(self, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
         """L1 distance from the fingertip to every key's press point, (len(ids), 10)."""
         return np.abs(self.tip[ids, None, :] - self.keys[None]).sum(axis=2)
