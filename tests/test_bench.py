@@ -16,8 +16,8 @@ def test_train_report_gives_the_packed_views_thread_setting_and_its_ratio():
         "lerobot_train_packed": _train_run(2, 1, 0.2), "lerobot_train_packed_threads": _train_run(1, 2, 0.125),
         "getitem_s_per_window": 0.007, "getitem_view_s_per_window": 0.005, "getitem_packed_s_per_row": 0.0005,
         "update_only": [{"threads": 1, "real_frames_per_s": 12000.0, "padded_frames_per_s": 40000.0,
-                         "real_vs_every_frame": {"real_frames_only_per_s": 40000.0, "every_frame_per_s": 25000.0,
-                                                 "speedup": 1.6}}],
+                         "running_vs_every_row": {"running_rows_per_s": 40000.0, "every_row_per_s": 25000.0,
+                                                  "speedup": 1.6}}],
         "stacked_vs_loop": {"stacked_frames_per_s": 26000.0, "loop_frames_per_s": 24000.0, "speedup": 26 / 24},
         "select_action_s": {"batch_1": 0.0004, "batch_64": 0.002},
     }
@@ -26,26 +26,28 @@ def test_train_report_gives_the_packed_views_thread_setting_and_its_ratio():
     assert "on S1, batch 128, 2 workers, 1 math thread, window 24 | 2,200 real frames/s" in report
     assert "| one worker and two math threads against 2 workers and one (same runs) | 1.60x |" in report
     assert "(stacked is 1.08x)" in report and "| 0.40 ms per step |" in report
-    assert "padding included (as before `OCNCore.unroll_frames`; alternated, best of 3) | the real frames alone are 1.60x" in report
+    assert ("padding included (as before `OCNCore.unroll_frames`; alternated, best of 3) | stepping only the rows still "
+            "in their episode is 1.60x faster") in report
 
 
-def test_computing_every_frame_keeps_the_loss_and_is_undone():
-    """The baseline of the real-frames speed-up: the same loss, computed over every frame, only inside."""
+def test_stepping_every_row_keeps_the_loss_and_is_undone():
+    """The baseline of the running-rows speed-up: the same loss, every row stepped, only inside."""
     import torch
 
     from lerobot.utils.constants import ACTION
-    from policies.ocn.benchmark import computing_every_frame, make_bench_policy, random_batch
+    from policies.ocn.benchmark import make_bench_policy, random_batch, stepping_every_row
 
     policy = make_bench_policy(hidden_size=16, obs_dim=20, window=6)
     batch = random_batch(policy, 4, 6)
     batch[f"{ACTION}_is_pad"][0, 2:] = batch[f"{ACTION}_is_pad"][3, 4:] = True
-    real, _ = policy.forward(batch)
+    running, _ = policy.forward(batch)
     calls = []
-    core_unroll = policy.core.unroll
-    policy.core.unroll = lambda *args: calls.append(args) or core_unroll(*args)
-    with computing_every_frame(policy):
+    core_step = policy.core.step
+    policy.core.step = lambda state, x, start: calls.append(start.shape[0]) or core_step(state, x, start)
+    with stepping_every_row(policy):
         every, _ = policy.forward(batch)
-    assert len(calls) == 1 and calls[0][0].shape[:2] == (6, 4)  # every frame of every window went through
+    assert calls == [4] * 6  # every row at every step of the window
+    calls.clear()
     policy.forward(batch)
-    assert len(calls) == 1  # and only inside
-    torch.testing.assert_close(every, real)
+    assert calls == [4, 4, 3, 3, 2, 2]  # outside, only the rows still in their episode
+    torch.testing.assert_close(every, running)

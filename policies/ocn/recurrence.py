@@ -287,7 +287,10 @@ class OCNCore(nn.Module):
 
     def unroll(self, x: Tensor, state: OCNState, start: Tensor) -> tuple[OCNState, StepOutput]:
         """Run over time-major x [T, B, obs_dim] with `start` [T, B]; outputs are stacked over T."""
-        projected = self.project(x)
+        return self.unroll_projected(self.project(x), state, start)
+
+    def unroll_projected(self, projected: Projected, state: OCNState, start: Tensor) -> tuple[OCNState, StepOutput]:
+        """`unroll` from the first layer's observation terms [T, ., B, d_mlp], every row at every step."""
         # unbind, not indexing: indexing's backward would zero-fill the whole window at every step.
         steps = zip(projected.controller.unbind(0), projected.options.unbind(0), start.unbind(0), strict=True)
         outputs = []
