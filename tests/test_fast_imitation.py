@@ -11,7 +11,7 @@ from conftest import CRAFT_REPO_ID, DIAL_REPO_ID
 from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import load_episodes, split_episodes
 from tools.episode_parsing import load_policy, score_segmentations, segment_episodes
-from tools.fast_imitation import episode_batch, episode_draws, main, parse_overrides, split_table
+from tools.fast_imitation import episode_batch, episode_draws, main, parse_overrides, peak_table, split_table
 
 
 def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
@@ -26,6 +26,7 @@ def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
     assert [point["step"] for point in result["curve"]] == [2, 4]
     for point in result["curve"]:
         assert point["nll"] > 0 and 0 <= point["usage_imbalance"] <= 1.0987
+        assert point["lr"] == result["settings"]["optimizer_lr"]
         assert all(0 <= point[key] <= 1 for key in ("f1_tol0", "f1_tol1", "align_acc", "nmi"))
         assert sum(point["option_share"]) == pytest.approx(1.0, abs=1e-3)
         for thirds in point["option_by_subtask_third"].values():
@@ -45,8 +46,9 @@ def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
     more = tmp_path / "continued.json"
     assert main(["train", "--root", str(craft_dataset), "--repo-id", CRAFT_REPO_ID, "--out", str(more), "--steps", "2",
                  "--batch-size", "8", "--eval-every", "2", "--init", str(tmp_path / "model"),
-                 "--set", "termination_cost=0.1", "termination_penalty=log"]) == 0
+                 "--set", "termination_cost=0.1", "termination_penalty=log", "lr_schedule=cosine"]) == 0
     continued = json.loads(more.read_text())
+    assert continued["curve"][-1]["lr"] == 0.0  # the cosine schedule has annealed to zero by the last step
     assert continued["settings"]["hidden_size"] == 16 and continued["settings"]["usage_balance"] == 1.0
     assert continued["settings"]["pretrained_path"] == str(tmp_path)
     assert continued["settings"]["termination_penalty"] == "log" and continued["settings"]["termination_cost"] == 0.1
@@ -173,15 +175,19 @@ def test_fast_imitation_trains_dial_on_standardised_episodes_and_scores_free_run
             np.testing.assert_allclose(action, episodes.action[match[0], :width], atol=1e-4)
 
 
-def test_plot_draws_the_chosen_metrics_and_names_a_missing_one(tmp_path):
+def test_plot_draws_the_chosen_metrics_and_names_a_missing_one(tmp_path, capsys):
     path = tmp_path / "run.json"
     points = [{"step": 250 * (k + 1), "nmi": 1.0, "f1_tol1": 1.0, "align_acc": 1.0, "nll": 2.0 - k,
                "mean_success_rate": 0.5 * k} for k in range(3)]
     path.write_text(json.dumps({"settings": {"batch_size": 32}, "curve": points}))
     png = tmp_path / "success.png"
-    assert main(["plot", str(path), "--png", str(png), "--metrics", "mean_success_rate,nll"]) == 0
+    assert main(["plot", str(path), "--png", str(png), "--metrics", "mean_success_rate,nll",
+                 "--peak", "mean_success_rate"]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert capsys.readouterr().out.rstrip().endswith("| run | 750 | 1.000 | 0.000 |")
     assert split_table([path], 0.9, ("mean_success_rate", "nll")).splitlines()[2].endswith("| 750 | 1.000 | 0.000 |")
+    assert peak_table([path], "nll", ("nll", "mean_success_rate")).splitlines()[2] == "| run | 250 | 2.000 | 0.000 |"
+    assert peak_table([path], "mean_success_rate").splitlines()[2] == "| run | 750 | 1.000 | 1.000 | 1.000 |"
     without = tmp_path / "no_rollouts.json"
     without.write_text(json.dumps({"settings": {"batch_size": 32}, "curve": [{k: v for k, v in points[0].items()
                                                                             if k != "mean_success_rate"}]}))

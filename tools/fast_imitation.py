@@ -118,6 +118,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         policy = OCNPolicy.from_pretrained(args.init, config=config)
     preprocessor, postprocessor = make_pre_post_processors(config, dataset_stats=meta.stats)
     optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
+    schedule = config.get_scheduler_preset()
+    scheduler = schedule.build(optimizer, num_training_steps=args.steps) if schedule is not None else None
     train_split = load_episodes(args.root, split_episodes(args.root, "train"))
     val_split = load_episodes(args.root, split_episodes(args.root, "val"), max_episodes=args.val_episodes)
     draw = episode_draws(np.minimum(train_split.lengths, config.window_size), args.batch_size, args.sampler, rng)
@@ -135,12 +137,15 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optimizer_grad_clip_norm)
         optimizer.step()
+        if scheduler is not None:
+            scheduler.step()
         frames += stats["frames_used"]
         if step % args.eval_every == 0 or step == args.steps:
             policy.eval()
             parses = segment_episodes(policy, preprocessor, val_split)
             shape = parse_statistics(val_split, parses)
-            point = {"step": step, **{key: stats[key] for key in ("nll", "mean_end", "usage_imbalance")},
+            point = {"step": step, "lr": optimizer.param_groups[0]["lr"],
+                     **{key: stats[key] for key in ("nll", "mean_end", "usage_imbalance")},
                      **score_segmentations(val_split, parses),
                      "option_share": shape.get("label_share"), "option_by_subtask": shape.get("label_by_subtask"),
                      "option_by_subtask_third": shape.get("label_by_subtask_third"),
@@ -179,6 +184,17 @@ def split_table(paths: list[Path], threshold: float, metrics: tuple[str, ...] = 
     return "\n".join(lines)
 
 
+def peak_table(paths: list[Path], peak: str, metrics: tuple[str, ...] = CURVE_METRICS) -> str:
+    """Markdown: per curve file, the first scored point where `peak` is highest and `metrics` there,
+    for runs whose last point is not their best (a run that diverges late)."""
+    lines = [f"| run | step of highest {peak} | " + " | ".join(metrics) + " |", "|---|---|" + "---|" * len(metrics)]
+    for path in paths:
+        curve = json.loads(path.read_text())["curve"]
+        best = max(curve, key=lambda point: point[peak])
+        lines.append(f"| {path.stem} | {best['step']} | " + " | ".join(f"{best[metric]:.3f}" for metric in metrics) + " |")
+    return "\n".join(lines)
+
+
 def plot(args: argparse.Namespace) -> None:
     """One panel per metric of `--metrics`, one line per curve file, labelled by the file's stem,
     against training steps or (`--x episodes`) the episodes drawn, which compares runs of different
@@ -210,6 +226,9 @@ def plot(args: argparse.Namespace) -> None:
     fig.savefig(args.png, dpi=110)
     plt.close(fig)
     print(split_table(args.curves, args.split_nmi, metrics))
+    if args.peak:
+        print()
+        print(peak_table(args.curves, args.peak, metrics))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -256,6 +275,8 @@ def main(argv: list[str] | None = None) -> int:
                            "mean_success_rate for runs trained with --rollouts)")
     draw.add_argument("--split-nmi", type=float, default=0.9,
                       help="the NMI at which the printed table counts the options as split")
+    draw.add_argument("--peak", metavar="METRIC",
+                      help="also print each run's point where this curve metric is highest, with --metrics there")
     args = parser.parse_args(argv)
     args.argv = argv
     if args.command == "train":
