@@ -193,3 +193,5 @@ def test_plot_draws_the_chosen_metrics_and_names_a_missing_one(tmp_path, capsys)
                                                                             if k != "mean_success_rate"}]}))
     with pytest.raises(SystemExit, match="no mean_success_rate"):
         main(["plot", str(without), "--png", str(tmp_path / "x.png"), "--metrics", "mean_success_rate"])
+    with pytest.raises(SystemExit, match="no mean_success_rate"):
+        main(["plot", str(without), "--png", str(tmp_path / "x.png"), "--peak", "mean_success_rate"])

@@ -206,8 +206,9 @@ def plot(args: argparse.Namespace) -> None:
 
     metrics = tuple(args.metrics.split(","))
     curves = {path: json.loads(path.read_text()) for path in args.curves}
+    wanted = metrics + ((args.peak,) if args.peak else ())
     for path, result in curves.items():
-        missing = [metric for metric in metrics if metric not in result["curve"][-1]]
+        missing = [metric for metric in wanted if metric not in result["curve"][-1]]
         if missing:
             raise SystemExit(f"{path} has no {', '.join(missing)} in its curve (free-run success needs --rollouts).")
     fig, axes = plt.subplots(1, len(metrics), figsize=(4.5 * len(metrics), 3.6), squeeze=False)
