@@ -284,9 +284,8 @@ def _dial_markdown(r: dict) -> str:
         f"(median {x['steps_median']:.0f} steps, p99 {x['steps_p99']:.0f}, max {x['steps_max']} of {x['step_limit']}) |\n"
         for name, x in (("noise-free", r["expert"]),
                         (f"with DART noise as recorded (levels {_levels(r['expert_dart'])})", r["expert_dart"]),
-                        *([(f"with the reference demonstrations' DART noise (levels "
-                            f"{_levels(r['expert_reference_dart'])}; not recorded)", r["expert_reference_dart"])]
-                          if "expert_reference_dart" in r else []))
+                        (f"with the reference demonstrations' DART noise (levels "
+                         f"{_levels(r['expert_reference_dart'])}; not recorded)", r["expert_reference_dart"]))
     )
     return (
         "# Dial env speed and expert success\n\n"
