@@ -3,7 +3,8 @@
 Each experiment is a subcommand in its own module: `imitation-s1` (skill induction and its
 ablations, `imitation.py`), `s1` and `s2` (finetuning over frozen skills against MoE, HIL and flat
 PPO, `finetune.py`), `parsing-s1` (how OCN and the baselines parse S1 over training, `parsing.py`),
-`dial` (skills cloned from 2-digit PINs, finetuned on 3-digit PINs against MoE, `dial.py`).
+`dial` (skills cloned from 2-digit PINs, finetuned on 3-digit PINs against MoE, `dial.py`), and
+`combine` (one finetuning study from the results files of several invocations, `combine.py`).
 What they share is in `runs.py` (recording, resumable `lerobot-train` runs) and `report.py` (the
 results files' provenance and checks table).
 """
@@ -13,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tools.reproduce import dial, finetune, imitation, parsing
+from tools.reproduce import combine, dial, finetune, imitation, parsing
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,6 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     finetune.add_parsers(sub)
     parsing.add_parser(sub)
     dial.add_parser(sub)
+    combine.add_parser(sub)
     args = parser.parse_args(argv)
     args.argv = argv
     return args.func(args)

@@ -339,8 +339,7 @@ def markdown(result: dict[str, Any]) -> str:
     lines = [
         f"# Finetuning on Craft {setting.name.upper()}: {setting.tasks}",
         "",
-        f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
-        f"{result['date']}. Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
+        f"{origin_words(result)} Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
         f"{setting.n_options} options per cloned model{skills_note}, cloned by "
         f"`lerobot-train` on {imitation.loading_words(result['settings'])}"
         f"{imitation.recording_words(result['settings'])} "
@@ -348,8 +347,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"OCN's: {imitation.settling_words(result['settings'])}); PPO through `ocn-finetune`, "
         f"{result['settings']['frames']} env frames per run, {result['settings']['envs']} envs. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
-        f"seeds. Runs finished: {result['runs_finished']} of {result['runs_planned']}; wall time of this "
-        f"invocation {result['wall_s'] / 60:.0f} min.",
+        f"seeds. Runs finished: {result['runs_finished']} of {result['runs_planned']}; wall time of "
+        f"{'the invocations' if 'sources' in result else 'this invocation'} {result['wall_s'] / 60:.0f} min.",
         "",
         "## Checks",
         "",
@@ -363,6 +362,17 @@ def markdown(result: dict[str, Any]) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def origin_words(result: dict[str, Any]) -> str:
+    """Which command wrote the results, where and when; for a study combined from several results files
+    (`ocn-reproduce combine`), the invocation behind each of them too."""
+    own = f"`{result['command']}` on {machine_words(result['machine'])}, {result['date']}"
+    if "sources" not in result:
+        return f"Written by {own}."
+    each = "; ".join(f"`{source['command']}` on {machine_words(source['machine'])}, {source['date']} "
+                     f"({', '.join(source['methods'])})" for source in result["sources"])
+    return f"Combined by {own}, from the results of: {each}."
 
 
 def budget_table(summary: dict[str, dict[str, Any]], labels: list[str]) -> list[str]:
@@ -396,10 +406,15 @@ def write_results(args: argparse.Namespace, setting: Setting, runs: list[dict[st
         "runs": [{key: value for key, value in run.items() if key != "curve"} for run in runs],
         "wall_s": round(wall_s, 1),
     }
-    stem = write_result_files(args.results, f"finetune_{setting.name}", result, markdown(result))
-    title = f"Finetuning in Craft {setting.name.upper()} ({setting.tasks}): mean and std over seeds"
-    plot(summary, METHODS, task_labels(setting), "std", title, stem.with_suffix(".png"))
+    write_study_files(args.results, setting, result)
     return result
+
+
+def write_study_files(results: Path, setting: Setting, result: dict[str, Any]) -> None:
+    """`finetune_<setting>.{json,md,png}` of a study's result in the folder `results`."""
+    stem = write_result_files(results, f"finetune_{setting.name}", result, markdown(result))
+    title = f"Finetuning in Craft {setting.name.upper()} ({setting.tasks}): mean and std over seeds"
+    plot(result["summary"], METHODS, task_labels(setting), "std", title, stem.with_suffix(".png"))
 
 
 def reproduce(args: argparse.Namespace) -> int:

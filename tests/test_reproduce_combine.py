@@ -1,0 +1,76 @@
+"""ocn-reproduce combine: one finetuning study from the results files of separate invocations."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from tools.reproduce import main
+from tools.reproduce.finetune import SETTINGS, summarise, task_labels
+
+LABELS = task_labels(SETTINGS["s2"])
+
+
+def _run(method: str, success: float) -> dict:
+    """One sparse-reward run whose success climbs linearly to `success` over 1,000 env frames."""
+    curve = [{"frames": float(frames), "mean_return": success * frames / 1000, "success": success * frames / 1000,
+              **{f"success[{label}]": success * frames / 1000 for label in LABELS}} for frames in range(0, 1001, 100)]
+    return {"method": method, "reward": "sparse", "seed": 1, "command": f"ocn-finetune {method}",
+            "clone_commands": [], "clone_wall_s": [], "clones_trained_on": [], "summary": {"frames_per_s": 100.0},
+            "curve": curve}
+
+
+def _study(path: Path, runs: list[dict], **settings) -> Path:
+    """An S2 results file of `runs`, laid out as `ocn-reproduce s2` writes it."""
+    summary = summarise(runs, LABELS)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({
+        "command": f"ocn-reproduce s2 --methods {','.join(run['method'] for run in runs)}", "date": "2026-12-01",
+        "machine": {"cpu": "AMD EPYC", "cores": 2}, "setting": "s2",
+        "settings": {"frames": 1000, "envs": 8, "dart_noise": 0.1, "settle_steps": 1000,
+                     "settle_termination_cost": 0.1, **settings},
+        "runs_finished": len(runs), "runs_planned": len(runs), "summary": summary, "must_show": [],
+        "runs": [{k: v for k, v in run.items() if k != "curve"} for run in runs], "wall_s": 600.0,
+    }))
+    return path
+
+
+def test_combined_study_checks_every_baseline_against_ocn(tmp_path):
+    ocn = _study(tmp_path / "a" / "finetune_s2.json", [_run("OCN", 0.95)])
+    baselines = _study(tmp_path / "b" / "finetune_s2.json", [_run("flat PPO", 0.1), _run("MoE", 1.0)])
+    assert main(["combine", str(baselines), str(ocn), "--results", str(tmp_path / "both")]) == 0
+
+    result = json.loads((tmp_path / "both" / "finetune_s2.json").read_text())
+    assert list(result["summary"]) == ["OCN | sparse", "MoE | sparse", "flat PPO | sparse"]
+    together = summarise([_run("OCN", 0.95), _run("MoE", 1.0), _run("flat PPO", 0.1)], LABELS)
+    assert result["summary"] == json.loads(json.dumps(together))
+    checks = {check["check"].split(" (")[0]: check["holds"] for check in result["must_show"]}
+    assert checks == {"OCN, sparse: success >= 0.8 on each of BADC, ACBD, CABD": True,
+                      "sparse: MoE's mean success below OCN's": False,
+                      "sparse: flat PPO's mean success below OCN's": True}
+    assert result["runs_finished"] == 3 and result["wall_s"] == 1200.0
+    text = (tmp_path / "both" / "finetune_s2.md").read_text()
+    assert "Combined by `ocn-reproduce combine" in text
+    assert "`ocn-reproduce s2 --methods OCN` on AMD EPYC (2 cores), 2026-12-01 (OCN)" in text
+    assert "(MoE, flat PPO)" in text and "DART noise 0.1" in text and "wall time of the invocations 20 min" in text
+    assert (tmp_path / "both" / "finetune_s2.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("second, problem", [
+    ({"runs": [_run("MoE", 0.5)], "frames": 2000}, "differ in frames"),
+    ({"runs": [_run("OCN", 0.5)]}, "OCN | sparse is in both"),
+])
+def test_files_of_another_recipe_or_with_the_same_rows_are_refused(tmp_path, second, problem):
+    first = _study(tmp_path / "a.json", [_run("OCN", 0.95)])
+    other = _study(tmp_path / "b.json", second.pop("runs"), **second)
+    with pytest.raises(SystemExit, match=problem):
+        main(["combine", str(first), str(other), "--results", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_file_that_is_not_a_finetuning_study_is_refused_by_name(tmp_path):
+    study = _study(tmp_path / "a.json", [_run("OCN", 0.95)])
+    imitation = tmp_path / "imitation_s1.json"
+    imitation.write_text(json.dumps({"variants": {}}))
+    with pytest.raises(SystemExit, match="imitation_s1.json is not a results file"):
+        main(["combine", str(study), str(imitation), "--results", str(tmp_path / "out")])
