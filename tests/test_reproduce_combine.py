@@ -6,33 +6,41 @@ from pathlib import Path
 import pytest
 
 from tools.reproduce import main
-from tools.reproduce.finetune import SETTINGS, summarise, task_labels
+from tools.reproduce.finetune import SETTINGS, at_budget, summarise, task_labels
 
 LABELS = task_labels(SETTINGS["s2"])
 
 
-def _run(method: str, success: float) -> dict:
+def _run(method: str, success: float, seed: int = 1) -> dict:
     """One sparse-reward run whose success climbs linearly to `success` over 1,000 env frames."""
     curve = [{"frames": float(frames), "mean_return": success * frames / 1000, "success": success * frames / 1000,
               **{f"success[{label}]": success * frames / 1000 for label in LABELS}} for frames in range(0, 1001, 100)]
-    return {"method": method, "reward": "sparse", "seed": 1, "command": f"ocn-finetune {method}",
+    return {"method": method, "reward": "sparse", "seed": seed, "command": f"ocn-finetune {method}",
             "clone_commands": [], "clone_wall_s": [], "clones_trained_on": [], "summary": {"frames_per_s": 100.0},
-            "curve": curve}
+            "at_budget": at_budget(curve, LABELS), "curve": curve}
 
 
-def _study(path: Path, runs: list[dict], **settings) -> Path:
-    """An S2 results file of `runs`, laid out as `ocn-reproduce s2` writes it."""
+def _study(path: Path, runs: list[dict], legacy: bool = False, **settings) -> Path:
+    """An S2 results file of `runs`, laid out as `ocn-reproduce s2` writes it (`legacy`: as it wrote it
+    before runs kept their curves, and before the settings `settings` names None existed)."""
     summary = summarise(runs, LABELS)
+    kept = [{k: v for k, v in run.items() if k not in ("curve", "at_budget")} for run in runs] if legacy else runs
+    recipe = {"frames": 1000, "envs": 8, "dart_noise": 0.1, "settle_steps": 1000, "settle_termination_cost": 0.1,
+              **settings}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({
         "command": f"ocn-reproduce s2 --methods {','.join(run['method'] for run in runs)}", "date": "2026-12-01",
         "machine": {"cpu": "AMD EPYC", "cores": 2}, "setting": "s2",
-        "settings": {"frames": 1000, "envs": 8, "dart_noise": 0.1, "settle_steps": 1000,
-                     "settle_termination_cost": 0.1, **settings},
+        "settings": {key: value for key, value in recipe.items() if value is not None},
         "runs_finished": len(runs), "runs_planned": len(runs), "summary": summary, "must_show": [],
-        "runs": [{k: v for k, v in run.items() if k != "curve"} for run in runs], "wall_s": 600.0,
+        "runs": kept, "wall_s": 600.0,
     }))
     return path
+
+
+def _combine(tmp_path: Path, *files: Path) -> dict:
+    assert main(["combine", *map(str, files), "--results", str(tmp_path / "out")]) == 0
+    return json.loads((tmp_path / "out" / "finetune_s2.json").read_text())
 
 
 def test_combined_study_checks_every_baseline_against_ocn(tmp_path):
@@ -58,7 +66,7 @@ def test_combined_study_checks_every_baseline_against_ocn(tmp_path):
 
 @pytest.mark.parametrize("second, problem", [
     ({"runs": [_run("MoE", 0.5)], "frames": 2000}, "differ in frames"),
-    ({"runs": [_run("OCN", 0.5)]}, "OCN | sparse is in both"),
+    ({"runs": [_run("OCN", 0.5)]}, "OCN run with sparse reward and seed 1 is in both"),
 ])
 def test_files_of_another_recipe_or_with_the_same_rows_are_refused(tmp_path, second, problem):
     first = _study(tmp_path / "a.json", [_run("OCN", 0.95)])
@@ -74,3 +82,44 @@ def test_a_file_that_is_not_a_finetuning_study_is_refused_by_name(tmp_path):
     imitation.write_text(json.dumps({"variants": {}}))
     with pytest.raises(SystemExit, match="imitation_s1.json is not a results file"):
         main(["combine", str(study), str(imitation), "--results", str(tmp_path / "out")])
+
+
+def test_seeds_of_one_method_from_several_files_make_one_row(tmp_path):
+    """A file written before runs kept their curves (one seed per row) combines with new seeds of the
+    same method: the row is over all seeds, as if one invocation had run them."""
+    first = _study(tmp_path / "a.json", [_run("OCN", 0.9, seed=1), _run("MoE", 0.3, seed=1)], legacy=True)
+    later = _study(tmp_path / "b.json", [_run("OCN", 0.7, seed=2), _run("OCN", 0.8, seed=3)])
+    result = _combine(tmp_path, first, later)
+
+    row = result["summary"]["OCN | sparse"]
+    assert row["seeds"] == [1, 2, 3]
+    assert row["at_budget"]["success"]["mean"] == pytest.approx((0.9 * 0.9 + 0.7 * 0.9 + 0.8 * 0.9) / 3)
+    assert row["curves"]["success"]["max"][-1] == pytest.approx(0.9)
+    assert result["summary"]["MoE | sparse"]["seeds"] == [1]
+    assert [source["methods"] for source in result["sources"]] == [["OCN", "MoE"], ["OCN"]]
+    assert "| OCN | sparse | 3 |" in (tmp_path / "out" / "finetune_s2.md").read_text()
+    # The combined file keeps every run's curve, so it combines again with later seeds.
+    again = _combine(tmp_path, tmp_path / "out" / "finetune_s2.json", _study(tmp_path / "c.json", [_run("MoE", 0.5, 2)]))
+    assert again["summary"]["MoE | sparse"]["seeds"] == [1, 2]
+    assert again["summary"]["OCN | sparse"] == row
+
+
+def test_a_file_without_run_curves_and_rows_over_seeds_is_refused(tmp_path):
+    pooled = _study(tmp_path / "a.json", [_run("OCN", 0.9, seed=1), _run("OCN", 0.8, seed=2)], legacy=True)
+    other = _study(tmp_path / "b.json", [_run("MoE", 0.3)])
+    with pytest.raises(SystemExit, match=r"a.json keeps no curve per run .* over seeds \[1, 2\]"):
+        main(["combine", str(pooled), str(other), "--results", str(tmp_path / "out")])
+
+
+def test_a_setting_a_file_leaves_out_counts_as_its_default(tmp_path):
+    """Files written before `--dart-noise`, `--window-start`, the usage balance or settling existed
+    leave those settings out; they ran at the defaults and combine with files that spell them out."""
+    defaults = {"dart_noise": 0.0, "window_start": "episode", "usage_balance": 0.0, "settle_steps": 0,
+                "settle_termination_cost": 0.0}
+    old = _study(tmp_path / "a.json", [_run("OCN", 0.9)], legacy=True, **{key: None for key in defaults})
+    new = _study(tmp_path / "b.json", [_run("MoE", 0.3)], **defaults)
+    merged = _combine(tmp_path, old, new)["settings"]
+    assert {key: merged[key] for key in defaults} == defaults
+    noisy = _study(tmp_path / "c.json", [_run("MoE", 0.3)], **{**defaults, "dart_noise": 0.1})
+    with pytest.raises(SystemExit, match="differ in dart_noise"):
+        main(["combine", str(old), str(noisy), "--results", str(tmp_path / "refused")])

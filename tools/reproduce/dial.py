@@ -170,7 +170,7 @@ def write_results(args: argparse.Namespace, imitated: list[dict[str, Any]], runs
         "imitation_summary": imitation_scores,
         "summary": summary,
         "must_show": must_show(imitation_scores, summary),
-        "runs": [{key: value for key, value in run.items() if key != "curve"} for run in runs],
+        "runs": runs,
         "wall_s": round(wall_s, 1),
     }
     stem = write_result_files(args.results, "dial", result, markdown(result))

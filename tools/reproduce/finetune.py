@@ -77,6 +77,14 @@ METHODS = (
 )
 REWARDS = ("sparse", "dense")
 BASELINES = tuple(method.name for method in METHODS if method.key != "ocn")
+# The value of each study setting that results files written before it existed leave out.
+SETTING_DEFAULTS = {"window_start": imitation.STUDY_DEFAULTS["window_start"], "usage_balance": 0.0,
+                    **imitation.UNSETTLED, **imitation.RECORDING_DEFAULTS}
+
+
+def study_settings(result: dict[str, Any]) -> dict[str, Any]:
+    """A finetuning results file's settings, with the defaults of settings added after it was written."""
+    return {**SETTING_DEFAULTS, **result["settings"]}
 
 
 def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -> tuple[TrainSettings, dict[str, Any]]:
@@ -208,15 +216,17 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
         print(f"finetuning {out}", flush=True)
         with open(out / "finetune.log", "w") as log:
             subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT)
+    keys = ["frames", *curve_keys(task_labels(setting))]
     with open(out / "run" / "curve.csv", newline="") as handle:
-        rows = [{key: float(value) for key, value in row.items()} for row in csv.DictReader(handle)]
+        curve = [{key: round(float(row[key]), 4) for key in keys} for row in csv.DictReader(handle)]
     return {
         "method": method.name, "reward": reward, "seed": seed, "command": shown,
         "clone_commands": [run.command for run in clones],
         "clone_wall_s": [run.train_wall_s for run in clones],
         "clones_trained_on": [run.trained_on for run in clones],
         "summary": json.loads(summary_path.read_text()),
-        "curve": rows,
+        "at_budget": at_budget(curve, task_labels(setting)),
+        "curve": curve,
     }
 
 
@@ -224,11 +234,14 @@ def task_labels(setting: Setting) -> list[str]:
     return setting.tasks.split(",")
 
 
-def at_budget(run: dict[str, Any], labels: list[str]) -> dict[str, float]:
-    """Mean return and success (overall and per task) over the run's last FINAL_ROWS iterations."""
-    last = run["curve"][-FINAL_ROWS:]
-    keys = ["mean_return", "success", *(f"success[{label}]" for label in labels)]
-    return {key: float(np.mean([row[key] for row in last])) for key in keys}
+def curve_keys(labels: list[str]) -> list[str]:
+    """The learning-curve entries a study reports: mean return and success, overall and per task."""
+    return ["mean_return", "success", *(f"success[{label}]" for label in labels)]
+
+
+def at_budget(curve: list[dict[str, float]], labels: list[str]) -> dict[str, float]:
+    """Mean return and success (overall and per task) over a curve's last FINAL_ROWS iterations."""
+    return {key: float(np.mean([row[key] for row in curve[-FINAL_ROWS:]])) for key in curve_keys(labels)}
 
 
 def summarise(runs: list[dict[str, Any]], labels: list[str],
@@ -241,10 +254,10 @@ def summarise(runs: list[dict[str, Any]], labels: list[str],
             mine = [run for run in runs if run["method"] == method.name and run["reward"] == reward]
             if not mine:
                 continue
-            finals = [at_budget(run, labels) for run in mine]
+            finals = [run["at_budget"] for run in mine]
             grid = np.linspace(0, min(run["curve"][-1]["frames"] for run in mine), GRID_POINTS)
             curves = {}
-            for key in ("mean_return", "success", *(f"success[{label}]" for label in labels)):
+            for key in curve_keys(labels):
                 values = np.array([np.interp(grid, [r["frames"] for r in run["curve"]], [r[key] for r in run["curve"]])
                                    for run in mine])
                 curves[key] = over_seeds(values)
@@ -336,16 +349,16 @@ def markdown(result: dict[str, Any]) -> str:
              "OMPN": "OMPN: none, its whole network is finetuned"}
     shown = [note for method, note in notes.items() if method in ran]
     skills_note = f" ({'; '.join(shown)})" if shown else ""
+    settings = study_settings(result)
     lines = [
         f"# Finetuning on Craft {setting.name.upper()}: {setting.tasks}",
         "",
         f"{origin_words(result)} Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
         f"{setting.n_options} options per cloned model{skills_note}, cloned by "
-        f"`lerobot-train` on {imitation.loading_words(result['settings'])}"
-        f"{imitation.recording_words(result['settings'])} "
-        f"(OCN-family clones' option-usage balance {result['settings'].get('usage_balance', 0.0)}; "
-        f"OCN's: {imitation.settling_words(result['settings'])}); PPO through `ocn-finetune`, "
-        f"{result['settings']['frames']} env frames per run, {result['settings']['envs']} envs. "
+        f"`lerobot-train` on {imitation.loading_words(settings)}{imitation.recording_words(settings)} "
+        f"(OCN-family clones' option-usage balance {settings['usage_balance']}; "
+        f"OCN's: {imitation.settling_words(settings)}); PPO through `ocn-finetune`, "
+        f"{settings['frames']} env frames per run, {settings['envs']} envs. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
         f"seeds. Runs finished: {result['runs_finished']} of {result['runs_planned']}; wall time of "
         f"{'the invocations' if 'sources' in result else 'this invocation'} {result['wall_s'] / 60:.0f} min.",
@@ -403,7 +416,7 @@ def write_results(args: argparse.Namespace, setting: Setting, runs: list[dict[st
         "runs_planned": planned,
         "summary": summary,
         "must_show": must_show(setting, summary),
-        "runs": [{key: value for key, value in run.items() if key != "curve"} for run in runs],
+        "runs": runs,
         "wall_s": round(wall_s, 1),
     }
     write_study_files(args.results, setting, result)
