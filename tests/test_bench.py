@@ -51,3 +51,54 @@ def test_stepping_every_row_keeps_the_loss_and_is_undone():
     policy.forward(batch)
     assert calls == [4, 4, 3, 3, 2, 2]  # outside, only the rows still in their episode
     torch.testing.assert_close(every, running)
+
+
+def test_critic_inside_the_loop_gives_the_same_replay_and_gradients_and_is_undone():
+    """The baseline of the replay speed-up: the critic at every controller step, only inside."""
+    import torch
+
+    import tools.ppo as ppo
+    from tools.ppo_speed import bench_pool, critic_inside_the_loop
+
+    policy = bench_pool("flat", ["get wood", "get grass"])
+    critic = ppo.ValueHead(policy.config.hidden_size, 8)
+    state = torch.rand(3, 5, 81)
+    task_index = torch.tensor([0, 1, 0])
+
+    def replayed() -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+        policy.zero_grad(set_to_none=True)
+        critic.zero_grad(set_to_none=True)
+        logits, values = ppo.replay_controller(policy, critic, state, task_index)
+        (logits.square().sum() + values.sum()).backward()
+        grads = [p.grad.clone() for p in (*policy.core.controller.parameters(), *critic.parameters())]
+        return logits.detach(), values.detach(), grads
+
+    after = ppo.replay_controller
+    logits, values, grads = replayed()
+    with critic_inside_the_loop():
+        assert ppo.replay_controller is not after
+        inside_logits, inside_values, inside_grads = replayed()
+    assert ppo.replay_controller is after
+    assert logits.shape == (3, 5, 5) and values.shape == (3, 5)
+    torch.testing.assert_close(inside_logits, logits)
+    torch.testing.assert_close(inside_values, values)
+    for inside, now in zip(inside_grads, grads, strict=True):
+        torch.testing.assert_close(inside, now)
+
+
+def test_ocn_bench_ppo_writes_both_pools_rates_and_the_replay_ratio(tmp_path):
+    import json
+
+    from tools.bench import main
+
+    out = tmp_path / "bench_ppo.json"
+    main(["ppo", "--envs", "3", "--iterations", "1", "--out", str(out), "--note", "test"])
+    result = json.loads(out.read_text())
+    pools = {p["pool"]: p for p in result["pools"]}
+    assert set(pools) == {"flat", "ocn"}
+    assert pools["flat"]["decisions_per_frame"] == 1.0  # a decision at every step
+    assert 0 < pools["ocn"]["decisions_per_frame"] < 1.0
+    for p in pools.values():
+        assert p["frames"] > 0 and p["frames_per_s"] > 0 and p["replay"]["speedup"] > 0
+    report = out.with_suffix(".md").read_text()
+    assert "Conditions: test" in report and "| flat pool (a decision every step" in report

@@ -14,6 +14,11 @@ printed and not written, for checking it without the minutes of training runs).
 checkpoint, as a whole subprocess (interpreter start and imports included) and as the logging
 alone that it reports.
 
+`ocn-bench ppo` measures PPO finetuning on Craft's S2 tasks, 64 envs, one math thread: env frames
+per second with collecting and updating timed apart, for a controller that decides at every step
+(flat PPO and MoE) and for an OCN's, and the update's controller replay with the critic read after
+the recurrence against inside it (`tools.ppo_speed`).
+
 `ocn-bench dial` measures Dial env steps per second, the env's physics rate against bare
 `mujoco.mj_step` on the same model and trajectory, and the expert's success over 200 two-digit
 PINs, noise-free and with the DART noise it records with. Results carry the machine they ran on.
@@ -29,7 +34,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -584,16 +591,72 @@ def run_view_bench(args: argparse.Namespace) -> None:
     _write(result, Path(args.out), markdown)
 
 
+def run_ppo_bench(args: argparse.Namespace) -> None:
+    """`tools.ppo_speed` for each pool, on one math thread."""
+    import torch
+
+    from tools.ppo_speed import POOLS, S2_TASKS, bench_pool_iterations
+
+    torch.set_num_threads(1)
+    result = {
+        "benchmark": "ocn-bench ppo",
+        "machine": machine(),
+        "note": args.note,
+        "tasks": S2_TASKS,
+        "iterations": args.iterations,
+        "pools": [bench_pool_iterations(kind, args.envs, args.iterations) for kind in POOLS],
+    }
+    _write(result, Path(args.out), _ppo_markdown(result))
+
+
+def _ppo_markdown(r: dict) -> str:
+    m = r["machine"]
+    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    what = {"flat": "flat pool (a decision every step, as flat PPO and MoE)",
+            "ocn": "random 4-option OCN (decisions where terminations fire)"}
+    rows = []
+    for p in r["pools"]:
+        replay = p["replay"]
+        rows.append(
+            f"| {what[p['pool']]} | {p['frames_per_s']:,.0f} | {p['decisions_per_frame']:.2f} | "
+            f"{p['collect_s']:.2f} | {p['update_s']:.2f} | {replay['update_critic_inside_s']:.2f} s against "
+            f"{replay['update_s']:.2f} s: **{replay['speedup']:.2f}x** |"
+        )
+    return (
+        "# PPO finetuning speed\n\n"
+        f"Command: `ocn-bench ppo`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}; "
+        "one math thread, as `ocn-finetune` runs.\n\n"
+        f"{conditions}"
+        f"One PPO iteration is one episode in each of {r['pools'][0]['envs']} Craft envs on S2's tasks "
+        f"({r['tasks']}, sparse reward) and the update of the paper's PPO (4 epochs, minibatches of about "
+        "256 decisions). The pools are random, built in memory, so their episodes run to the step limit. "
+        f"Best of {r['iterations']} iterations after a warm-up. "
+        "The last column times one update of the same batch from "
+        "the same weights with the critic evaluated inside the controller's recurrence (as before) and "
+        "after it (now), alternated, best of three each.\n\n"
+        "| controller | env frames/s | decisions per frame | collect (s) | update (s) | "
+        "update, critic inside against after the recurrence |\n|---|---|---|---|---|---|\n"
+        + "\n".join(rows) + "\n"
+    )
+
+
+def _bench(sub: Any, name: str, func: Callable[[argparse.Namespace], None], help: str) -> argparse.ArgumentParser:
+    """A benchmark's subcommand, with the --out and --note every benchmark takes."""
+    parser = sub.add_parser(name, help=help)
+    parser.add_argument("--out", default=str(RESULTS / f"bench_{name}.json"))
+    parser.add_argument("--note", default="", help="conditions of the run, stored with the results")
+    parser.set_defaults(func=func)
+    return parser
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="ocn-bench", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="what", required=True)
-    env = sub.add_parser("env", help="Craft stepping and record_demos throughput")
+    env = _bench(sub, "env", run_env_bench, "Craft stepping and record_demos throughput")
     env.add_argument("--steps", type=int, default=20000, help="single-env steps per timing")
     env.add_argument("--episodes-per-task", type=int, default=6000, help="record_demos size (S1 is 6000)")
-    env.add_argument("--out", default=str(RESULTS / "bench_env.json"))
-    env.add_argument("--note", default="", help="conditions of the run, stored with the results")
-    env.set_defaults(func=run_env_bench)
-    train = sub.add_parser("train", help="OCN training throughput, stacked vs looped options, select_action latency")
+    train = _bench(sub, "train", run_train_bench,
+                   "OCN training throughput, stacked vs looped options, select_action latency")
     train.add_argument("--root", default="outputs/bench/craft_s1", help="S1 dataset (recorded there if missing)")
     train.add_argument("--steps", type=int, default=150, help="lerobot-train steps")
     train.add_argument("--batch-size", type=int, default=128)
@@ -602,29 +665,25 @@ def main(argv: list[str] | None = None) -> None:
     train.add_argument("--train-rounds", type=int, default=2,
                        help="lerobot-train runs on the dataset, its training view and its packed view, in turn; "
                             "the best of each counts")
-    train.add_argument("--out", default=str(RESULTS / "bench_train.json"))
     train.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
                        help="where lerobot-train and the timed updates run; data loading stays on the CPU")
-    train.add_argument("--note", default="", help="conditions of the run, stored with the results")
     train.add_argument("--only", choices=["latency"],
                        help="measure select_action latency alone and print it as JSON (nothing is written)")
-    train.set_defaults(func=run_train_bench)
-    dial = sub.add_parser("dial", help="Dial env steps/s, its physics rate against bare mj_step, expert success")
+    dial = _bench(sub, "dial", run_dial_bench,
+                  "Dial env steps/s, its physics rate against bare mj_step, expert success")
     dial.add_argument("--steps", type=int, default=2000, help="env steps per timing")
     dial.add_argument("--pins", type=int, default=200, help="random two-digit PINs for the expert success rate")
-    dial.add_argument("--out", default=str(RESULTS / "bench_dial.json"))
-    dial.add_argument("--note", default="", help="conditions of the run, stored with the results")
-    dial.set_defaults(func=run_dial_bench)
-    view = sub.add_parser("view", help="ocn-view writing an .rrd of 50 episodes with a trained checkpoint")
+    view = _bench(sub, "view", run_view_bench, "ocn-view writing an .rrd of 50 episodes with a trained checkpoint")
     view.add_argument("--root", default="outputs/reproduce/craft_s1", help="a recorded Craft dataset")
     view.add_argument("--repo-id", default="local/craft_s1")
     view.add_argument("--policy", default="outputs/reproduce/imitation_s1/3options_T10/seed1/train/checkpoints/last/"
                       "pretrained_model", help="a trained ocn checkpoint (from ocn-reproduce imitation-s1)")
     view.add_argument("--episodes", type=int, default=50, help="validation episodes to log")
     view.add_argument("--repeats", type=int, default=3)
-    view.add_argument("--out", default=str(RESULTS / "bench_view.json"))
-    view.add_argument("--note", default="", help="conditions of the run, stored with the results")
-    view.set_defaults(func=run_view_bench)
+    ppo = _bench(sub, "ppo", run_ppo_bench,
+                 "PPO env frames/s on S2, collect against update, the controller replay's speed-up")
+    ppo.add_argument("--envs", type=int, default=64, help="envs stepped together (ocn-finetune's default)")
+    ppo.add_argument("--iterations", type=int, default=3, help="timed iterations per pool, after one warm-up")
     args = parser.parse_args(argv)
     args.func(args)
 

@@ -227,17 +227,20 @@ def semi_mdp_gae(
 
 def replay_controller(policy: OCNPolicy, critic: ValueHead, state: Tensor, task_index: Tensor) -> tuple[Tensor, Tensor]:
     """Tempered controller logits [E, J, N] and values [E, J] over decision sequences state [E, J, S],
-    from each episode's task state h^c_{tau,0}: the controller recurrence of hard execution, replayed."""
+    from each episode's task state h^c_{tau,0}: the controller recurrence of hard execution, replayed.
+
+    Only the recurrence runs step by step; the critic reads all the states h^c at once after it (for
+    MoE, whose episodes are a decision per step, a quarter of the update's time; `ocn-bench ppo`)."""
     core = policy.core
     features = policy.encoder(state.transpose(0, 1).contiguous())
     projected = core.controller.project(features)
     controller_h = core.controller_init[task_index]
-    logits, values = [], []
+    logits, states = [], []
     for x in projected.unbind(0):
         step_logits, controller_h = core.decide(x, controller_h)
         logits.append(step_logits)
-        values.append(critic(controller_h))
-    return torch.stack(logits, 1), torch.stack(values, 1)
+        states.append(controller_h)
+    return torch.stack(logits, 1), critic(torch.stack(states, 1))
 
 
 def freeze_options(policy: OCNPolicy) -> list[nn.Parameter]:
