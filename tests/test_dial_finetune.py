@@ -156,7 +156,7 @@ def test_dial_clones_train_with_the_dial_flags_and_finetune_on_the_pins(dial_dat
     assert dial.TWO_DIGIT_PINS.split(",") == ["12", "14", "18", "21", "24", "28", "41", "42", "48", "81", "82", "84"]
     assert [method.key for method in dial.METHODS] == ["ocn", "moe"]
     args = argparse.Namespace(steps=2, batch_size=8, window_size=120, num_workers=0, threads=1,
-                              controller_lr_scale=1.0, frames=100, envs=4)
+                              controller_lr_scale=1.0, frames=100, envs=4, entropy=0.001)
     moe = dial.METHODS[1]
     overrides = {"n_options": 4, "temperature": 10.0, **moe.overrides}
     command = train_command(dial.train_settings(args), dial_dataset, DIAL_REPO_ID, tmp_path / "train", 1, overrides)

@@ -84,6 +84,7 @@ from policies.ompn import OMPNPolicy
 from policies.sequence import SequenceConfig
 from tools.episode_parsing import Processor, load_policy
 from tools.ompn_rl import finetunable_ompn, ompn_for_tasks
+from tools.ppo import Acting, PPOConfig, env_tasks, finetune
 from tools.worlds import World, craft, dial, policy_world
 
 # The new controller's softmax temperature unless --temperature says otherwise (module docstring).
@@ -132,13 +133,14 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="torch CPU threads; the per-step matmuls are small, and more threads than free "
                              "cores slow them down many times over")
     ppo = parser.add_argument_group("PPO (defaults from the paper's appendix A.2)")
-    ppo.add_argument("--lr", type=float, default=3e-4, help="initial Adam lr, decayed linearly to 0")
-    ppo.add_argument("--epochs", type=int, default=4)
-    ppo.add_argument("--batch-size", type=int, default=256, help="controller decisions per minibatch")
-    ppo.add_argument("--gamma", type=float, default=0.97)
-    ppo.add_argument("--gae-lambda", type=float, default=0.95)
-    ppo.add_argument("--clip", type=float, default=0.2)
-    ppo.add_argument("--entropy", type=float, default=1e-3, help="entropy bonus coefficient")
+    paper = PPOConfig()
+    ppo.add_argument("--lr", type=float, default=paper.lr, help="initial Adam lr, decayed linearly to 0")
+    ppo.add_argument("--epochs", type=int, default=paper.epochs)
+    ppo.add_argument("--batch-size", type=int, default=paper.batch_size, help="controller decisions per minibatch")
+    ppo.add_argument("--gamma", type=float, default=paper.gamma)
+    ppo.add_argument("--gae-lambda", type=float, default=paper.gae_lambda)
+    ppo.add_argument("--clip", type=float, default=paper.clip)
+    ppo.add_argument("--entropy", type=float, default=paper.entropy_coef, help="entropy bonus coefficient")
     return parser.parse_args(argv)
 
 
@@ -410,8 +412,6 @@ def _hierarchy(policy: OCNPolicy | OMPNPolicy) -> dict[str, Any]:
 def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     """Everything `ocn-finetune` does; returns the summary it writes to finetune.json."""
     from tqdm import tqdm
-
-    from tools.ppo import Acting, PPOConfig, env_tasks, finetune
 
     _check_args(args)
     torch.set_num_threads(args.threads)

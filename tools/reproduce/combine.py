@@ -21,7 +21,7 @@ from tools.reproduce.report import provenance
 
 # Settings that change what a run measures; the files combined must agree on each of them.
 RECIPE = ("frames", "envs", "steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task",
-          "data_seed", "dart_noise", "window_start", "usage_balance", "settle_steps", "settle_termination_cost")
+          "data_seed", "dart_noise", "window_start", "usage_balance", "settle_steps", "settle_termination_cost", "entropy")
 
 
 def load_study(path: Path) -> dict[str, Any]:

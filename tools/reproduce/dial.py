@@ -115,7 +115,7 @@ def must_show(imitated: dict[str, Any], summary: dict[str, dict[str, Any]]) -> l
 
 def markdown(result: dict[str, Any]) -> str:
     """The human-readable results file."""
-    settings = result["settings"]
+    settings = finetune.study_settings(result)
     labels = settings["tasks"].split(",")
     lines = [
         f"# Dial: skills from 2-digit PINs, finetuned on {', '.join(labels)}",
@@ -126,7 +126,7 @@ def markdown(result: dict[str, Any]) -> str:
         f"{settings['batch_size']} windows of {settings['window_size']} frames, {N_OPTIONS} options, T = 10; "
         f"imitation scores: `ocn-eval` on the validation split ({settings['rollouts']} env episodes per PIN and "
         f"per option-table cell); finetuning: `ocn-finetune`, {settings['frames']} env frames per run, "
-        f"{settings['envs']} envs. Values at the budget are the mean of each run's last {finetune.FINAL_ROWS} PPO "
+        f"{settings['envs']} envs, entropy bonus {settings['entropy']:g}. Values at the budget are the mean of each run's last {finetune.FINAL_ROWS} PPO "
         f"iterations, then mean (std) over seeds. Runs finished: {result['runs_finished']} of "
         f"{result['runs_planned']}; wall time of this invocation {result['wall_s'] / 60:.0f} min.",
         "",

@@ -31,6 +31,7 @@ import numpy as np
 from tools import console_script
 from tools.bench import RESULTS
 from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE
+from tools.ppo import PPOConfig
 from tools.reproduce import imitation
 from tools.reproduce.report import checks_table, machine_words, over_seeds, provenance, write_result_files
 from tools.reproduce.runs import (Settling, TrainedRun, TrainSettings, record_dataset, same_training, settle_policy,
@@ -79,7 +80,7 @@ REWARDS = ("sparse", "dense")
 BASELINES = tuple(method.name for method in METHODS if method.key != "ocn")
 # The value of each study setting that results files written before it existed leave out.
 SETTING_DEFAULTS = {"window_start": imitation.STUDY_DEFAULTS["window_start"], "usage_balance": 0.0,
-                    **imitation.UNSETTLED, **imitation.RECORDING_DEFAULTS}
+                    **imitation.UNSETTLED, **imitation.RECORDING_DEFAULTS, "entropy": PPOConfig.entropy_coef}
 
 
 def study_settings(result: dict[str, Any]) -> dict[str, Any]:
@@ -140,10 +141,13 @@ def clone_suffix(args: argparse.Namespace, method: Method) -> str:
     return clone_study_suffix(args, method) + imitation.settings_suffix(settle)
 
 
-def budget_suffix(args: argparse.Namespace) -> str:
-    """Folder-name suffix of a finetuning run at a budget other than the study's default
-    (`_frames1500000`), so that runs at several budgets live side by side."""
-    return "" if args.frames == args.default_frames else imitation.settings_suffix({"frames": args.frames})
+def ppo_suffix(args: argparse.Namespace) -> str:
+    """Folder-name suffix of a finetuning run at a budget or an entropy bonus other than the study's
+    default (`_frames1500000_entropy0.01`), so that runs of several PPO settings live side by side."""
+    changed = {"frames": args.frames} if args.frames != args.default_frames else {}
+    if args.entropy != PPOConfig.entropy_coef:
+        changed["entropy"] = args.entropy
+    return imitation.settings_suffix(changed)
 
 
 def clone_dir(args: argparse.Namespace, setting: Setting, method: Method, folder: str, seed: int) -> Path:
@@ -179,9 +183,12 @@ def finetune_command(args: argparse.Namespace, setting: Setting, method: Method,
     """The `ocn-finetune` call of one run (flat PPO: the same command with `--flat` and no checkpoint).
 
     Over OCN-type pools (OCN, MoE, HIL) the new controller's temperature is spelled out: it once
-    defaulted to the checkpoint's, so a run made then is refused rather than reused."""
+    defaulted to the checkpoint's, so a run made then is refused rather than reused. The entropy bonus
+    is spelled out only where it is not the paper's, so that runs made before it could change are reused."""
     command = [console_script("ocn-finetune"), "--tasks", setting.tasks, "--reward", reward,
                "--frames", str(args.frames), "--envs", str(args.envs), "--seed", str(seed), "--out", str(out)]
+    if args.entropy != PPOConfig.entropy_coef:
+        command += ["--entropy", f"{args.entropy:g}"]
     if method.overrides is None:
         return command + ["--flat"]
     if method.policy_type == "ocn":
@@ -194,7 +201,7 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
     """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve.
     A finished run is made again when a clone it used was trained on since (`clones.json` keeps the
     clones' training commands; runs from before it existed are reused as they are)."""
-    folder = f"{method.key}_{reward}{clone_suffix(args, method)}{budget_suffix(args)}"
+    folder = f"{method.key}_{reward}{clone_suffix(args, method)}{ppo_suffix(args)}"
     out = args.workdir / f"finetune_{setting.name}" / folder / f"seed{seed}"
     command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
     shown = " ".join(Path(word).name if word.startswith("/") else word for word in command)
@@ -358,7 +365,7 @@ def markdown(result: dict[str, Any]) -> str:
         f"`lerobot-train` on {imitation.loading_words(settings)}{imitation.recording_words(settings)} "
         f"(OCN-family clones' option-usage balance {settings['usage_balance']}; "
         f"OCN's: {imitation.settling_words(settings)}); PPO through `ocn-finetune`, "
-        f"{settings['frames']} env frames per run, {settings['envs']} envs. "
+        f"{settings['frames']} env frames per run, {settings['envs']} envs, entropy bonus {settings['entropy']:g}. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
         f"seeds. Runs finished: {result['runs_finished']} of {result['runs_planned']}; wall time of "
         f"{'the invocations' if 'sources' in result else 'this invocation'} {result['wall_s'] / 60:.0f} min.",
@@ -470,6 +477,9 @@ def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Metho
                         help="env frames per PPO run (the budget); runs at another budget than the default get "
                              "folders of their own (`ocn_sparse_frames1500000`)")
     parser.set_defaults(default_frames=frames)
+    parser.add_argument("--entropy", type=float, default=PPOConfig.entropy_coef,
+                        help="PPO's entropy bonus coefficient, the same for every method (ocn-finetune --entropy); "
+                             "runs at another value than the paper's get folders of their own")
     parser.add_argument("--envs", type=int, default=64, help="envs stepped together in PPO")
     parser.add_argument("--rewards", type=lambda s: s.split(","), default=list(REWARDS),
                         help="comma-separated: sparse,dense")
