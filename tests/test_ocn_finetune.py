@@ -314,3 +314,29 @@ def test_flat_ppo_writes_the_same_curve_and_a_checkpoint_of_primitive_actions(tm
     assert not torch.equal(policy.core.controller_init, torch.zeros_like(policy.core.controller_init))
     decided = hard_rollout(out / "pretrained_model", ["A", "D"], max_steps=6)
     assert all(rows.all() for rows in decided)
+
+
+def test_controller_report_accounts_for_every_step_and_names_each_options_subtask(finetuned, tmp_path):
+    from tools.controller_report import main as controller_report
+
+    out = tmp_path / "report.json"
+    assert controller_report(["--policy", str(finetuned / "pretrained_model"), "--tasks", "ADC,CAD", "--episodes", "6",
+                              "--rollouts", "3", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["tasks"] == ["ADC", "CAD"]
+    table = result["option_subtask_success"]
+    assert table["subtasks"] == ["A", "D", "C"] and len(table["table"]) == 5  # 3 + 2 pooled options
+    best = {i: table["subtasks"][max(range(3), key=lambda j: (row[j], -j))] for i, row in enumerate(table["table"])}
+    assert set(result["oracle_controller"]["success_rate"]) == {"ADC", "CAD"}
+    for task, report in result["controller"].items():
+        decisions = report["decisions"]
+        assert sum(d["count"] for d in decisions) == pytest.approx(6 * report["decisions_per_episode"])
+        assert all(d["option_serves"] == best[d["option"]] for d in decisions)
+        assert {d["subtask"] for d in decisions if d["done"] == 0} == {task[0]}  # the first decision: the first subtask
+        lengths = [(report[f"mean_length_{kind}"] or 0.0) for kind in ("success", "failure")]
+        successes = round(6 * report["success_rate"])
+        steps = lengths[0] * successes + lengths[1] * (6 - successes)
+        rounding = 0.005 * sum(d["count"] for d in decisions)  # mean_steps has 2 decimals
+        assert sum(d["count"] * d["mean_steps"] for d in decisions) == pytest.approx(steps, abs=rounding)
+        detours = sum(d["count"] for d in decisions if d["option_serves"] != d["subtask"])
+        assert report["detour_share"] == pytest.approx(detours / sum(d["count"] for d in decisions))

@@ -74,23 +74,6 @@ def plot_option_table(table: np.ndarray, subtasks: list[str], path: Path, title:
     plt.close(fig)
 
 
-def _oracle(policy, preprocessor, postprocessor, world, tasks: list[tuple[int, ...]], args: argparse.Namespace,
-            option_table: dict[str, Any]) -> dict[str, Any]:
-    """Success on --oracle-tasks under the oracle controller, each subtask given the option that
-    completes it most often in the option x subtask table (ties: the lower index)."""
-    from tools import rollouts
-
-    table = np.asarray(option_table["table"])
-    columns = option_table["subtasks"]
-    best = {code: int(table[:, j].argmax()) for j, code in enumerate(columns)}
-    success = rollouts.oracle_controller_success(
-        policy, preprocessor, postprocessor, world.rollouts(), [world.task_code(task) for task in tasks],
-        {world.subtask_codes.index(code): option for code, option in best.items()}, args.rollouts, args.seed,
-    )
-    return {"option_of_subtask": best, "success_rate": success,
-            "mean_success_rate": float(np.mean(list(success.values())))}
-
-
 def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     """Everything `ocn-eval` reports, as the JSON it writes."""
     import torch
@@ -169,7 +152,10 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
             log.close()
     oracle = None  # after the free runs, so that asking for it leaves every other figure as it was
     if oracle_tasks is not None:
-        oracle = _oracle(policy, preprocessor, postprocessor, world, oracle_tasks, args, option_table)
+        oracle = rollouts.oracle_report(
+            policy, preprocessor, postprocessor, world.rollouts(), [world.task_code(task) for task in oracle_tasks],
+            option_table["subtasks"], np.asarray(option_table["table"]), world.subtask_codes, args.rollouts, args.seed,
+        )
     return {
         **scores,
         "action_nll": nll,

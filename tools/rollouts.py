@@ -217,3 +217,28 @@ def oracle_controller_success(
         obs, _ = step_envs(world, batch, postprocessor(action))
     success = (batch.progress == batch.task_len).reshape(len(tasks), episodes)
     return {task: float(success[k].mean()) for k, task in enumerate(tasks)}
+
+
+def oracle_report(
+    policy: OCNPolicy,
+    preprocessor: Processor,
+    postprocessor: Processor,
+    world: RolloutWorld,
+    tasks: Sequence[str],
+    columns: Sequence[str],
+    table: np.ndarray,
+    subtask_codes: Sequence[str],
+    episodes: int,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """`oracle_controller_success` on `tasks` (codes), each subtask given the option that completes it
+    most often in the option x subtask `table` [options, columns] (ties: the lower index), with that
+    assignment and the mean."""
+    best = {code: int(table[:, j].argmax()) for j, code in enumerate(columns)}
+    success = oracle_controller_success(
+        policy, preprocessor, postprocessor, world, list(tasks),
+        {list(subtask_codes).index(code): option for code, option in best.items()}, episodes, seed,
+    )
+    return {"option_of_subtask": best, "success_rate": success,
+            "mean_success_rate": float(np.mean(list(success.values())))}
+
