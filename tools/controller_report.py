@@ -39,8 +39,9 @@ def controller_decisions(
     policy: OCNPolicy, preprocessor: Processor, postprocessor: Processor, world: RolloutWorld,
     task: str, option_subtask: dict[int, str], subtask_codes: tuple[str, ...], episodes: int, seed: int = 0,
 ) -> dict[str, Any]:
-    """`episodes` episodes of `task` (as the world's rollouts take it) with the whole policy, each decision of its controller
-    recorded with the subtask in progress; `option_subtask` names the subtask each option serves best."""
+    """`episodes` episodes of `task` (as the world's rollouts take it) with the whole policy, each
+    decision of its controller recorded with the subtask in progress; `option_subtask` names the
+    subtask each option serves best."""
     named = [world.policy_task(task)] * episodes
     batch, obs = world.start([task] * episodes, [seed + k for k in range(episodes)])
     rows = np.arange(episodes)
