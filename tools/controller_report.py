@@ -97,14 +97,13 @@ def report(policy_path: Path, task_spec: str, episodes: int, rollouts_per_cell: 
     table = rollouts.option_subtask_success(policy, preprocessor, postprocessor, acting, subtasks,
                                             rollouts_per_cell, seed).success
     option_subtask = {i: subtasks[int(table[i].argmax())] for i in range(table.shape[0])}
-    oracle = rollouts.oracle_report(policy, preprocessor, postprocessor, acting, keys, subtasks, table,
-                                    world.subtask_codes, rollouts_per_cell, seed)
     return {
         "policy": str(policy_path),
         "tasks": codes,
         "seed": seed,
         "option_subtask_success": {"subtasks": subtasks, "table": table.round(4).tolist()},
-        "oracle_controller": {**oracle, "success_rate": dict(zip(codes, oracle["success_rate"].values(), strict=True))},
+        "oracle_controller": rollouts.oracle_report(policy, preprocessor, postprocessor, acting, codes, subtasks,
+                                                    table, world.subtask_codes, rollouts_per_cell, seed),
         "controller": {
             code: controller_decisions(policy, preprocessor, postprocessor, acting, key, option_subtask,
                                        world.subtask_codes, episodes, seed)
