@@ -53,12 +53,12 @@ def test_stepping_every_row_keeps_the_loss_and_is_undone():
     torch.testing.assert_close(every, running)
 
 
-def test_critic_inside_the_loop_gives_the_same_replay_and_gradients_and_is_undone():
-    """The baseline of the replay speed-up: the critic at every controller step, only inside."""
+def test_critic_per_step_gives_the_same_replay_and_gradients_and_is_undone():
+    """The baseline of the replay speed-up: the critic one decision step at a time, only inside."""
     import torch
 
     import tools.ppo as ppo
-    from tools.ppo_speed import bench_pool, critic_inside_the_loop
+    from tools.ppo_speed import bench_pool, critic_per_step
 
     policy = bench_pool("flat", ["get wood", "get grass"])
     critic = ppo.ValueHead(policy.config.hidden_size, 8)
@@ -73,17 +73,17 @@ def test_critic_inside_the_loop_gives_the_same_replay_and_gradients_and_is_undon
         grads = [p.grad.clone() for p in (*policy.core.controller.parameters(), *critic.parameters())]
         return logits.detach(), values.detach(), grads
 
-    after = ppo.replay_controller
+    at_once = critic.net
     logits, values, grads = replayed()
-    with critic_inside_the_loop():
-        assert ppo.replay_controller is not after
-        inside_logits, inside_values, inside_grads = replayed()
-    assert ppo.replay_controller is after
+    with critic_per_step(critic):
+        assert critic.net is not at_once
+        per_step_logits, per_step_values, per_step_grads = replayed()
+    assert critic.net is at_once
     assert logits.shape == (3, 5, 5) and values.shape == (3, 5)
-    torch.testing.assert_close(inside_logits, logits)
-    torch.testing.assert_close(inside_values, values)
-    for inside, now in zip(inside_grads, grads, strict=True):
-        torch.testing.assert_close(inside, now)
+    torch.testing.assert_close(per_step_logits, logits)
+    torch.testing.assert_close(per_step_values, values)
+    for per_step, now in zip(per_step_grads, grads, strict=True):
+        torch.testing.assert_close(per_step, now)
 
 
 def test_ocn_bench_ppo_writes_both_pools_rates_and_the_replay_ratio(tmp_path):

@@ -16,8 +16,8 @@ alone that it reports.
 
 `ocn-bench ppo` measures PPO finetuning on Craft's S2 tasks, 64 envs, one math thread: env frames
 per second with collecting and updating timed apart, for a controller that decides at every step
-(flat PPO and MoE) and for an OCN's, and the update's controller replay with the critic read after
-the recurrence against inside it (`tools.ppo_speed`).
+(flat PPO and MoE) and for an OCN's, and the update's controller replay with the critic read on all steps
+at once against one step at a time (`tools.ppo_speed`).
 
 `ocn-bench dial` measures Dial env steps per second, the env's physics rate against bare
 `mujoco.mj_step` on the same model and trajectory, and the expert's success over 200 two-digit
@@ -619,7 +619,7 @@ def _ppo_markdown(r: dict) -> str:
         replay = p["replay"]
         rows.append(
             f"| {what[p['pool']]} | {p['frames_per_s']:,.0f} | {p['decisions_per_frame']:.2f} | "
-            f"{p['collect_s']:.2f} | {p['update_s']:.2f} | {replay['update_critic_inside_s']:.2f} s against "
+            f"{p['collect_s']:.2f} | {p['update_s']:.2f} | {replay['update_critic_per_step_s']:.2f} s against "
             f"{replay['update_s']:.2f} s: **{replay['speedup']:.2f}x** |"
         )
     return (
@@ -632,10 +632,11 @@ def _ppo_markdown(r: dict) -> str:
         "256 decisions). The pools are random, built in memory, so their episodes run to the step limit. "
         f"Best of {r['iterations']} iterations after a warm-up. "
         "The last column times one update of the same batch from "
-        "the same weights with the critic evaluated inside the controller's recurrence (as before) and "
-        "after it (now), alternated, best of three each.\n\n"
+        "the same weights with the critic evaluated one decision step at a time (as it was inside the "
+        "controller's recurrence before) and on all steps at once after the recurrence (now), alternated, "
+        "best of three each.\n\n"
         "| controller | env frames/s | decisions per frame | collect (s) | update (s) | "
-        "update, critic inside against after the recurrence |\n|---|---|---|---|---|---|\n"
+        "update, critic per step against at once |\n|---|---|---|---|---|---|\n"
         + "\n".join(rows) + "\n"
     )
 

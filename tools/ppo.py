@@ -230,7 +230,7 @@ def replay_controller(policy: OCNPolicy, critic: ValueHead, state: Tensor, task_
     from each episode's task state h^c_{tau,0}: the controller recurrence of hard execution, replayed.
 
     Only the recurrence runs step by step; the critic reads all the states h^c at once after it (for
-    MoE, whose episodes are a decision per step, a quarter of the update's time; `ocn-bench ppo`)."""
+    MoE, whose episodes are a decision per step, about a fifth of the update's time; `ocn-bench ppo`)."""
     core = policy.core
     features = policy.encoder(state.transpose(0, 1).contiguous())
     projected = core.controller.project(features)
