@@ -48,13 +48,18 @@ def test_s1_clones_finetunes_and_writes_results_then_reuses(tmp_path):
     work = [line for line in again.stdout.splitlines() if line.startswith(("training ", "resuming ", "finetuning "))]
     assert again.returncode == 0 and not work, work
 
-    changed = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--envs", "4")
-    assert changed.returncode != 0 and "another command" in changed.stderr
-    # Another budget is another folder: both runs stay.
-    budget = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--frames", "3000")
-    assert budget.returncode == 0, budget.stderr[-2000:]
+    # Another budget or number of envs is another folder: every run stays.
+    for setting in (["--frames", "3000"], ["--envs", "4"]):
+        other = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", *setting)
+        assert other.returncode == 0, other.stderr[-2000:]
     finetuned = tmp_path / "work" / "finetune_s1"
-    assert {"ocn_sparse_frames1500", "ocn_sparse_frames3000"} <= {path.name for path in finetuned.iterdir()}
+    assert {"ocn_sparse_frames1500_envs8", "ocn_sparse_frames3000_envs8", "ocn_sparse_frames1500_envs4"} <= {
+        path.name for path in finetuned.iterdir()}
+    # A folder holding another command's run (one made before a setting entered the folder names) is refused.
+    command_file = finetuned / "ocn_sparse_frames1500_envs8" / "seed1" / "finetune_command.txt"
+    command_file.write_text(command_file.read_text().replace("--envs 8", "--envs 16"))
+    refused = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse")
+    assert refused.returncode != 0 and "another command" in refused.stderr
 
 
 def test_s1_clone_trained_on_or_under_other_settings_is_finetuned_again(tmp_path):
@@ -82,7 +87,7 @@ def test_s1_clone_trained_on_or_under_other_settings_is_finetuned_again(tmp_path
     assert balanced.returncode == 0, balanced.stderr[-2000:]
     clone_dir = tmp_path / "work" / "imitation_s1" / "3options_T10_usage_balance1.0" / "seed1"
     assert "--policy.usage_balance=1.0" in (clone_dir / "train_command.txt").read_text()
-    assert (tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_frames1500" / "seed1" / "run" / "finetune.json").exists()
+    assert (tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_frames1500_envs8" / "seed1" / "run" / "finetune.json").exists()
     assert json.loads(step.read_text())["step"] == 4  # the paper-loss clone is left as it was
 
     # --settle-steps settles the OCN clone as imitation-s1 does (into the same run's settle folder), and
@@ -91,7 +96,7 @@ def test_s1_clone_trained_on_or_under_other_settings_is_finetuned_again(tmp_path
                          "--settle-steps", "2")
     assert settled.returncode == 0, settled.stderr[-2000:]
     assert "--policy.termination_penalty=log" in (clone_dir / "settle" / "train_command.txt").read_text()
-    out = tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_settle_steps2_settle_cost0.1_frames1500" / "seed1"
+    out = tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_settle_steps2_settle_cost0.1_frames1500_envs8" / "seed1"
     assert (out / "run" / "finetune.json").exists()
     result = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())
     assert " && " in result["runs"][0]["clone_commands"][0]
@@ -115,7 +120,7 @@ def test_s2_pools_the_options_of_both_cloned_models(tmp_path):
     assert "--entropy" not in command  # the paper's bonus: runs made before it could change are reused
 
 
-def test_a_non_default_entropy_bonus_reaches_ocn_finetune_and_gets_folders_of_its_own(tmp_path):
+def test_a_non_default_entropy_bonus_or_envs_reach_ocn_finetune_and_get_folders_of_their_own(tmp_path):
     import argparse
 
     from tools.reproduce.finetune import ppo_suffix, study_settings
@@ -123,8 +128,9 @@ def test_a_non_default_entropy_bonus_reaches_ocn_finetune_and_gets_folders_of_it
     args = argparse.Namespace(frames=1_500_000, default_frames=300_000, envs=4, entropy=0.01)
     command = finetune_command(args, SETTINGS["s2"], METHODS[0], "sparse", 1, [], tmp_path / "out")
     assert command[command.index("--entropy") + 1] == "0.01"
-    assert ppo_suffix(args) == "_frames1500000_entropy0.01"
-    assert ppo_suffix(argparse.Namespace(frames=300_000, default_frames=300_000, entropy=0.001)) == ""
+    assert command[command.index("--envs") + 1] == "4"
+    assert ppo_suffix(args) == "_frames1500000_entropy0.01_envs4"
+    assert ppo_suffix(argparse.Namespace(frames=300_000, default_frames=300_000, entropy=0.001, envs=64)) == ""
     assert study_settings({"settings": {"frames": 300_000}})["entropy"] == 0.001  # files from before the flag
 
 

@@ -38,6 +38,7 @@ from tools.reproduce.runs import (Settling, TrainedRun, TrainSettings, record_da
                                   train_policy)
 
 GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
+DEFAULT_ENVS = 64  # envs per PPO iteration unless --envs says otherwise (the paper does not give its number)
 FINAL_ROWS = 3  # PPO iterations averaged for the value "at the budget" (one iteration is noisy)
 
 
@@ -142,11 +143,14 @@ def clone_suffix(args: argparse.Namespace, method: Method) -> str:
 
 
 def ppo_suffix(args: argparse.Namespace) -> str:
-    """Folder-name suffix of a finetuning run at a budget or an entropy bonus other than the study's
-    default (`_frames1500000_entropy0.01`), so that runs of several PPO settings live side by side."""
+    """Folder-name suffix of a finetuning run at a budget, an entropy bonus or a number of envs other
+    than the study's default (`_frames1500000_entropy0.01_envs256`), so that runs of several PPO
+    settings live side by side (runs made before a setting entered the name are at its default)."""
     changed = {"frames": args.frames} if args.frames != args.default_frames else {}
     if args.entropy != PPOConfig.entropy_coef:
         changed["entropy"] = args.entropy
+    if args.envs != DEFAULT_ENVS:
+        changed["envs"] = args.envs
     return imitation.settings_suffix(changed)
 
 
@@ -480,7 +484,9 @@ def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Metho
     parser.add_argument("--entropy", type=float, default=PPOConfig.entropy_coef,
                         help="PPO's entropy bonus coefficient, the same for every method (ocn-finetune --entropy); "
                              "runs at another value than the paper's get folders of their own")
-    parser.add_argument("--envs", type=int, default=64, help="envs stepped together in PPO")
+    parser.add_argument("--envs", type=int, default=DEFAULT_ENVS,
+                        help="envs stepped together in PPO, one episode each per iteration (the batch of an update); "
+                             "runs at another number than the default get folders of their own")
     parser.add_argument("--rewards", type=lambda s: s.split(","), default=list(REWARDS),
                         help="comma-separated: sparse,dense")
     parser.add_argument("--methods", type=lambda s: s.split(","), default=",".join(m.key for m in methods),
