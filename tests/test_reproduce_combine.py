@@ -1,4 +1,4 @@
-"""ocn-reproduce combine: one finetuning study from the results files of separate invocations."""
+"""ocn-reproduce combine: one finetuning or parsing study from the results files of separate invocations."""
 
 import json
 from pathlib import Path
@@ -66,7 +66,7 @@ def test_combined_study_checks_every_baseline_against_ocn(tmp_path):
 
 @pytest.mark.parametrize("second, problem", [
     ({"runs": [_run("MoE", 0.5)], "frames": 2000}, "differ in frames"),
-    ({"runs": [_run("OCN", 0.5)]}, "OCN run with sparse reward and seed 1 is in both"),
+    ({"runs": [_run("OCN", 0.5)]}, "the OCN run with reward sparse and seed 1 is in both"),
 ])
 def test_files_of_another_recipe_or_with_the_same_rows_are_refused(tmp_path, second, problem):
     first = _study(tmp_path / "a.json", [_run("OCN", 0.95)])
@@ -123,3 +123,80 @@ def test_a_setting_a_file_leaves_out_counts_as_its_default(tmp_path):
     noisy = _study(tmp_path / "c.json", [_run("MoE", 0.3)], **{**defaults, "dart_noise": 0.1})
     with pytest.raises(SystemExit, match="differ in dart_noise"):
         main(["combine", str(old), str(noisy), "--results", str(tmp_path / "refused")])
+
+
+def _parsing_run(method: str, seed: int, f1: float, nmi: float | None) -> dict:
+    """One parsing run scored at steps 500 and 1000, ending at F1 `f1` and NMI `nmi`."""
+    rows = [{"step": step, "f1_tol0": f1 * step / 1000, "f1_tol1": f1 * step / 1000, "align_acc": f1,
+             "nmi": None if nmi is None else nmi * step / 1000, "wall_s": 1.0} for step in (500, 1000)]
+    if nmi is None:
+        rows = [{**row, "no_labels": "no per-step labels"} for row in rows]
+    return {"method": method, "seed": seed, "train_command": f"lerobot-train --policy.type={method.lower()}",
+            "train_wall_s": 100.0, "score_wall_s": 2.0, "checkpoints": rows,
+            "hyperparameters": {"policy_type": method.lower(), "values": {}, "source": "its config"}}
+
+
+def _parsing_study(path: Path, runs: list[dict], **settings) -> Path:
+    """A parsing_s1.json of `runs`, laid out as `ocn-reproduce parsing-s1` writes it."""
+    from tools.reproduce import parsing
+
+    recipe = {"experiment": "parsing-s1", "steps": 1000, "batch_size": 8, "window_size": 24, "eval_every": 500,
+              "controller_lr_scale": 1.0, "episodes_per_task": 12, "data_seed": 0, "window_start": "packed",
+              "usage_balance": 1.0, "workdir": str(path.parent), **settings}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({
+        "command": f"ocn-reproduce parsing-s1 --methods {','.join(run['method'] for run in runs)}",
+        "date": "2026-12-03", "machine": {"cpu": "AMD EPYC", "cores": 2}, "settings": recipe,
+        **parsing.study(runs, len(runs), 36, 300.0)}))
+    return path
+
+
+def test_parsing_studies_combine_into_one_with_the_checks_made_again(tmp_path):
+    ocn = _parsing_study(tmp_path / "a" / "parsing_s1.json",
+                         [_parsing_run("OCN", 1, 0.9, 0.8), _parsing_run("OMPN", 1, 1.0, None)])
+    later = _parsing_study(tmp_path / "b" / "parsing_s1.json",
+                           [_parsing_run("compILE", 1, 0.5, 0.3), _parsing_run("HIL", 1, 0.6, 0.9),
+                            _parsing_run("OCN", 2, 0.7, 0.6)], workdir="elsewhere")
+    assert main(["combine", str(ocn), str(later), "--results", str(tmp_path / "out")]) == 0
+
+    result = json.loads((tmp_path / "out" / "parsing_s1.json").read_text())
+    assert list(result["summary"]) == ["OCN", "OMPN", "compILE", "HIL"]
+    assert result["summary"]["OCN"]["seeds"] == [1, 2]
+    assert result["summary"]["OCN"]["final"]["f1_tol1"]["mean"] == pytest.approx(0.8)
+    assert result["summary"]["OCN"]["curves"]["nmi"]["min"] == pytest.approx([0.3, 0.6])
+    checks = {check["baseline"] + " " + check["metric"]: check["holds"] for check in result["must_show"]}
+    assert checks == {"OMPN f1_tol1": False, "OMPN nmi": None, "compILE nmi": True, "HIL nmi": False}
+    assert {(w["baseline"], w["metric"]) for w in result["baseline_wins"]} == {
+        ("OMPN", "f1_tol0"), ("OMPN", "f1_tol1"), ("OMPN", "align_acc"), ("HIL", "nmi")}
+    assert result["runs_finished"] == 5 and result["wall_s"] == 600.0 and result["val_episodes"] == 36
+    assert result["settings"]["experiment"] == "parsing-s1" and "workdir" not in result["settings"]
+    assert [source["methods"] for source in result["sources"]] == [["OCN", "OMPN"], ["OCN", "compILE", "HIL"]]
+    text = (tmp_path / "out" / "parsing_s1.md").read_text()
+    assert "Combined by `ocn-reproduce combine" in text and "wall time of the invocations 10.0 min" in text
+    assert "- HIL beats OCN on NMI: 0.900 against 0.700" in text
+    assert (tmp_path / "out" / "parsing_s1.png").stat().st_size > 0
+    # The combined file combines again.
+    more = _parsing_study(tmp_path / "c" / "parsing_s1.json", [_parsing_run("HIL", 2, 0.6, 0.5)])
+    assert main(["combine", str(tmp_path / "out" / "parsing_s1.json"), str(more), "--results", str(tmp_path / "again")]) == 0
+    assert json.loads((tmp_path / "again" / "parsing_s1.json").read_text())["summary"]["HIL"]["seeds"] == [1, 2]
+
+
+@pytest.mark.parametrize("second, problem", [
+    ({"steps": 2000}, "differ in steps"),
+    ({"window_start": "episode"}, "differ in window_start"),
+    ({"run": ("OCN", 1)}, "the OCN run with seed 1 is in both"),
+])
+def test_parsing_studies_of_another_recipe_or_with_the_same_run_are_refused(tmp_path, second, problem):
+    first = _parsing_study(tmp_path / "a.json", [_parsing_run("OCN", 1, 0.9, 0.8)])
+    method, seed = second.pop("run", ("HIL", 1))
+    other = _parsing_study(tmp_path / "b.json", [_parsing_run(method, seed, 0.6, 0.5)], **second)
+    with pytest.raises(SystemExit, match=problem):
+        main(["combine", str(first), str(other), "--results", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_parsing_study_and_a_finetuning_study_are_refused_together(tmp_path):
+    parsing = _parsing_study(tmp_path / "parsing_s1.json", [_parsing_run("OCN", 1, 0.9, 0.8)])
+    finetuning = _study(tmp_path / "finetune_s2.json", [_run("OCN", 0.95)])
+    with pytest.raises(SystemExit, match="different kinds: .*parsing_s1.json: parsing; .*finetune_s2.json: finetune"):
+        main(["combine", str(parsing), str(finetuning), "--results", str(tmp_path / "out")])

@@ -4,7 +4,8 @@ Each experiment is a subcommand in its own module: `imitation-s1` (skill inducti
 ablations, `imitation.py`), `s1` and `s2` (finetuning over frozen skills against MoE, HIL and flat
 PPO, `finetune.py`), `parsing-s1` (how OCN and the baselines parse S1 over training, `parsing.py`),
 `dial` (skills cloned from 2-digit PINs, finetuned on 3-digit PINs against MoE, `dial.py`), and
-`combine` (one finetuning study from the results files of several invocations, `combine.py`).
+`combine` (one finetuning or parsing study from the results files of several invocations,
+`combine.py`).
 What they share is in `runs.py` (recording, resumable `lerobot-train` runs) and `report.py` (the
 results files' provenance and checks table).
 """

@@ -33,7 +33,7 @@ from tools.bench import RESULTS
 from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE
 from tools.ppo import PPOConfig
 from tools.reproduce import imitation
-from tools.reproduce.report import checks_table, machine_words, over_seeds, provenance, write_result_files
+from tools.reproduce.report import checks_table, origin_words, over_seeds, provenance, write_result_files
 from tools.reproduce.runs import (Settling, TrainedRun, TrainSettings, record_dataset, same_training, settle_policy,
                                   train_policy)
 
@@ -386,17 +386,6 @@ def markdown(result: dict[str, Any]) -> str:
         "",
     ]
     return "\n".join(lines)
-
-
-def origin_words(result: dict[str, Any]) -> str:
-    """Which command wrote the results, where and when; for a study combined from several results files
-    (`ocn-reproduce combine`), the invocation behind each of them too."""
-    own = f"`{result['command']}` on {machine_words(result['machine'])}, {result['date']}"
-    if "sources" not in result:
-        return f"Written by {own}."
-    each = "; ".join(f"`{source['command']}` on {machine_words(source['machine'])}, {source['date']} "
-                     f"({', '.join(source['methods'])})" for source in result["sources"])
-    return f"Combined by {own}, from the results of: {each}."
 
 
 def budget_table(summary: dict[str, dict[str, Any]], labels: list[str]) -> list[str]:

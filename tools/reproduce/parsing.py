@@ -27,7 +27,8 @@ is compared with compILE's and HIL's instead), and every metric where any baseli
 
 Finished runs and their scores are reused, so an interrupted reproduction continues (a stopped
 training run resumes from its last checkpoint); a run folder trained with other settings is refused,
-and so is one whose checkpoints are not the ones `--eval-every` asks for.
+and so is one whose checkpoints are not the ones `--eval-every` asks for. Methods or seeds run in
+separate invocations (and workdirs) join into one study with `ocn-reproduce combine`.
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ from ocn_data.episodes_table import EpisodeArrays, load_episodes, split_episodes
 from tools.bench import RESULTS
 from tools.reproduce import finetune, imitation
 from tools.reproduce.finetune import Method
-from tools.reproduce.report import checks_table, over_seeds, provenance, train_time_words, write_result_files
+from tools.reproduce.report import (checks_table, origin_words, over_seeds, provenance, train_time_words,
+                                   write_result_files)
 from tools.reproduce.runs import TrainSettings, train_policy, training_record
 
 METRICS = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "task alignment", "nmi": "NMI"}
@@ -83,6 +85,10 @@ HYPERPARAMETERS: dict[str, tuple[tuple[str, ...], str]] = {
         "the network is OCN's (3 options, T = 10, appendix A.2's widths), as in ocn-reproduce s1's HIL clones",
     ),
 }
+
+# Settings that change what a run measures: the results files `ocn-reproduce combine` merges agree on each.
+RECIPE = ("experiment", "steps", "batch_size", "window_size", "eval_every", "controller_lr_scale", "episodes_per_task",
+          "data_seed", "window_start", "usage_balance")
 
 # How each model's boundaries are read, said beside every comparison: OMPN is given a count.
 READOUT_NOTE = (
@@ -285,17 +291,17 @@ def _cell(value: dict[str, float] | None) -> str:
 
 def markdown(result: dict[str, Any]) -> str:
     """The human-readable results file."""
-    settings, machine = result["settings"], result["machine"]
+    settings = result["settings"]
     lines = [
         "# Parsing S1 over training: OCN against OMPN, compILE and HIL",
         "",
-        f"Written by `{result['command']}` on {machine['cpu']} ({machine['cores']} cores, Python {machine['python']}), "
-        f"{result['date']}. Every method trained by `lerobot-train` on the S1 train split for {settings['steps']} "
+        f"{origin_words(result)} Every method trained by `lerobot-train` on the S1 train split for {settings['steps']} "
         f"steps of {settings['batch_size']} {imitation.loading_words(settings)} (window {settings['window_size']}), "
         f"a checkpoint every {settings['eval_every']} steps; each checkpoint's parse of the {result['val_episodes']} validation episodes "
         f"scored with the shared metrics (`tools.episode_parsing`), no env rollouts. Runs finished: "
-        f"{result['runs_finished']} of {result['runs_planned']}; wall time of this invocation "
-        f"{result['wall_s'] / 60:.1f} min (runs finished before it were reused).",
+        f"{result['runs_finished']} of {result['runs_planned']}; wall time of "
+        + ("the invocations" if "sources" in result else "this invocation")
+        + f" {result['wall_s'] / 60:.1f} min (runs an invocation found finished were reused).",
         "",
         "## Checks (issue 7)",
         "",
@@ -333,9 +339,9 @@ def markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def write_results(args: argparse.Namespace, runs: list[dict[str, Any]], planned: int, val_episodes: int,
-                  wall_s: float) -> dict[str, Any]:
-    """`results/parsing_s1.{json,md,png}` from the runs finished so far."""
+def study(runs: list[dict[str, Any]], planned: int, val_episodes: int, wall_s: float) -> dict[str, Any]:
+    """A study's result from its runs, without the provenance of the command that made it: the
+    summary over seeds, the checks, the baseline wins and each method's hyperparameters."""
     summary = summarise(runs)
     methods = {}
     for run in runs:
@@ -343,8 +349,7 @@ def write_results(args: argparse.Namespace, runs: list[dict[str, Any]], planned:
             methods[run["method"]] = {**run["hyperparameters"], "train_command": run["train_command"]}
     not_applicable = {run["method"]: row["no_labels"] for run in runs for row in run["checkpoints"]
                       if "no_labels" in row}
-    result = {
-        **provenance(args),
+    return {
         "runs_finished": len(runs),
         "runs_planned": planned,
         "val_episodes": val_episodes,
@@ -356,8 +361,19 @@ def write_results(args: argparse.Namespace, runs: list[dict[str, Any]], planned:
         "runs": runs,
         "wall_s": round(wall_s, 1),
     }
-    stem = write_result_files(args.results, "parsing_s1", result, markdown(result))
-    plot(summary, stem.with_suffix(".png"))
+
+
+def write_study_files(results: Path, result: dict[str, Any]) -> None:
+    """`parsing_s1.{json,md,png}` of a study's result in the folder `results`."""
+    stem = write_result_files(results, "parsing_s1", result, markdown(result))
+    plot(result["summary"], stem.with_suffix(".png"))
+
+
+def write_results(args: argparse.Namespace, runs: list[dict[str, Any]], planned: int, val_episodes: int,
+                  wall_s: float) -> dict[str, Any]:
+    """`results/parsing_s1.{json,md,png}` from the runs finished so far."""
+    result = {**provenance(args), **study(runs, planned, val_episodes, wall_s)}
+    write_study_files(args.results, result)
     return result
 
 

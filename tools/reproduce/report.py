@@ -20,6 +20,17 @@ def machine_words(record: dict[str, Any]) -> str:
     return f"{record['cpu']} ({record['cores']} cores)"
 
 
+def origin_words(result: dict[str, Any]) -> str:
+    """Which command wrote the results, where and when; for a study combined from several results files
+    (`ocn-reproduce combine`), the invocation behind each of them too."""
+    own = f"`{result['command']}` on {machine_words(result['machine'])}, {result['date']}"
+    if "sources" not in result:
+        return f"Written by {own}."
+    each = "; ".join(f"`{source['command']}` on {machine_words(source['machine'])}, {source['date']} "
+                     f"({', '.join(source['methods'])})" for source in result["sources"])
+    return f"Combined by {own}, from the results of: {each}."
+
+
 def train_time_words(record: dict[str, Any]) -> str:
     """A run's training wall seconds for a table cell, saying from which step they count when the
     run's first steps were trained before invocations were timed."""
