@@ -13,14 +13,13 @@ import pytest
 import torch
 
 import lerobot_policy_ocn  # noqa: F401  (registers `compile` and `craft` as LeRobot's CLIs do)
-from conftest import CRAFT_REPO_ID, craft_rollout, episode_windows, reload_checkpoint
+from conftest import CRAFT_REPO_ID, craft_rollout, episode_windows, reload_checkpoint, run_cli
 from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import load_episodes, split_episodes
 from policies.compile import CompILEConfig, CompILEPolicy
 from policies.compile.modeling_compile import NEG, CompILEOutput, compile_loss, latent_kl, length_prior
-from tools import ocn_eval
 from tools.episode_parsing import load_policy, score_segmentations, segment_episodes
 
 torch.set_num_threads(1)
@@ -211,10 +210,11 @@ def test_compile_acts_in_lerobot_evals_craft_rollout(compile_checkpoint):
 
 
 def test_ocn_eval_scores_a_compile_checkpoint(compile_checkpoint, craft_dataset, tmp_path):
+    """The console script in a process of its own, which has imported no policy module before it
+    loads the checkpoint."""
     out = tmp_path / "eval.json"
-    args = ["--policy", str(compile_checkpoint), "--root", str(craft_dataset), "--repo-id", CRAFT_REPO_ID,
-            "--rollouts", "2", "--max-episodes", "10", "--out", str(out)]
-    assert ocn_eval.main(args) == 0
+    run_cli("ocn-eval", "--policy", str(compile_checkpoint), "--root", str(craft_dataset), "--repo-id", CRAFT_REPO_ID,
+            "--rollouts", "2", "--max-episodes", "10", "--out", str(out), cwd=tmp_path)
     result = json.loads(out.read_text())
     assert result["policy_type"] == "compile" and 0.0 <= result["f1_tol0"] <= result["f1_tol1"] <= 1.0
     assert 0.0 <= result["align_acc"] <= 1.0 and 0.0 <= result["nmi"] <= 1.0

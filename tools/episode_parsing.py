@@ -76,7 +76,9 @@ class Parser:
 
 def load_policy(path: Path, device: str = "cpu") -> tuple[PreTrainedPolicy, Processor, Processor]:
     """A checkpoint (a `pretrained_model` folder) of any registered policy type, in eval mode, with
-    its pre/post-processors."""
+    its pre/post-processors. The project's entry package is imported first, as LeRobot's CLIs do,
+    so that every policy type it ships (`ocn`, `ompn`, `compile`) is registered in any process."""
+    import lerobot_policy_ocn  # noqa: F401
     from lerobot.configs import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
