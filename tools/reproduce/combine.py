@@ -28,7 +28,7 @@ RECIPE = ("frames", "envs", "steps", "batch_size", "window_size", "controller_lr
 
 
 def kind_of(result: dict[str, Any]) -> str | None:
-    """"finetune" or "parsing" for a results file this command merges, None for any other file."""
+    """The kind of a results file this command merges ("finetune" or "parsing"); None for any other."""
     if result.get("setting") in SETTINGS and "summary" in result:
         return "finetune"
     if result.get("settings", {}).get("experiment") == "parsing-s1" and "runs" in result:
@@ -135,7 +135,8 @@ def study_runs(path: Path, study: dict[str, Any], labels: list[str]) -> list[dic
                              f"files did), and its row {key} is over seeds {row['seeds']}, so its runs cannot be "
                              "told apart; combine files whose rows have one seed each")
         made = next(run for run in study["runs"] if (run["method"], run["reward"]) == (row["method"], row["reward"]))
-        curve = [{"frames": frames, **{name: row["curves"][name]["mean"][i] for name in finetune.curve_keys(labels)}}
+        keys = finetune.curve_keys(labels)
+        curve = [{"frames": frames, **{name: row["curves"][name]["mean"][i] for name in keys}}
                  for i, frames in enumerate(row["curve_frames"])]
         runs.append({**made, "at_budget": {name: value["mean"] for name, value in row["at_budget"].items()},
                      "curve": curve})
