@@ -31,7 +31,7 @@ def kind_of(result: dict[str, Any]) -> str | None:
     """The kind of a results file this command merges ("finetune" or "parsing"); None for any other."""
     if result.get("setting") in SETTINGS and "summary" in result:
         return "finetune"
-    if result.get("settings", {}).get("experiment") == "parsing-s1" and "runs" in result:
+    if result.get("settings", {}).get("experiment") == parsing.EXPERIMENT and "runs" in result:
         return "parsing"
     return None
 

@@ -86,6 +86,7 @@ HYPERPARAMETERS: dict[str, tuple[tuple[str, ...], str]] = {
     ),
 }
 
+EXPERIMENT = "parsing-s1"  # the subcommand, kept in a results file's settings as its kind
 # Settings that change what a run measures: the results files `ocn-reproduce combine` merges agree on each.
 RECIPE = ("experiment", "steps", "batch_size", "window_size", "eval_every", "controller_lr_scale", "episodes_per_task",
           "data_seed", "window_start", "usage_balance")
@@ -417,7 +418,7 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescrip
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """The `parsing-s1` subcommand."""
-    parser = sub.add_parser("parsing-s1", help="parsing of S1 over training, OCN against OMPN, compILE and HIL "
+    parser = sub.add_parser(EXPERIMENT, help="parsing of S1 over training, OCN against OMPN, compILE and HIL "
                             "(figure 7)", description=__doc__, epilog=_EPILOG, formatter_class=_HelpFormatter)
     parser.add_argument("--seeds", type=int, default=3, help="seeds per method")
     parser.add_argument("--methods", type=lambda s: s.split(","), default=",".join(m.key for m in METHODS),
