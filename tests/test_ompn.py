@@ -21,7 +21,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import load_episodes, split_episodes
 from policies.ompn import OMPNConfig, OMPNPolicy
 from policies.ompn.memory import stick_breaking
-from policies.ompn.modeling_ompn import expansion_boundaries
+from policies.ompn.modeling_ompn import expansion_boundaries, threshold_boundaries
 from tools import ocn_eval
 from tools.episode_parsing import Segmentation, load_ocn, load_policy, score_segmentations, segment_episodes
 from tools.parsing_metrics import boundaries_from_labels, parsing_scores
@@ -176,6 +176,21 @@ def test_boundary_read_out():
         expansion_boundaries(depth, 7)
 
 
+def test_count_free_read_out():
+    # Scaled heights 1, 0, 0.74, 0.05, 0.74, 0.42: at 0.5 the runs at steps 2 and 4 start subtasks.
+    depth = np.array([2.0, 0.1, 1.5, 0.2, 1.5, 0.9])
+    assert threshold_boundaries(depth, 0.5).tolist() == [1, 3, 5]
+    assert threshold_boundaries(depth, 0.3).tolist() == [1, 3, 5]  # steps 4-5 are one run, peaked at 4
+    assert threshold_boundaries(depth, 0.8).tolist() == [5]  # no step but the first is that high
+    # The run that holds step 0 is the episode's start; a later run's boundary is before its peak.
+    assert threshold_boundaries(np.array([2.0, 1.9, 0.1, 1.2, 1.8, 0.1]), 0.5).tolist() == [3, 5]
+    assert threshold_boundaries(np.array([1.0, 1.0, 1.0]), 0.5).tolist() == [2]  # flat: one segment
+    with pytest.raises(ValueError, match="must lie in \\(0, 1\\), got 1.0"):
+        threshold_boundaries(depth, 1.0)
+    with pytest.raises(ValueError, match="boundary_threshold must lie in \\(0, 1\\) or be None, got 0.0"):
+        OMPNConfig(device="cpu", boundary_threshold=0.0)
+
+
 # ---- through LeRobot and ocn-eval ----------------------------------------------------------------------
 
 
@@ -219,8 +234,36 @@ def test_ocn_eval_scores_an_ompn_checkpoint(ompn_checkpoint, craft_dataset, tmp_
     assert result["nmi"] is None and result["option_subtask_success"] is None
     assert set(result["not_applicable"]) == {"nmi", "option_subtask_success"} and result["action_nll"] > 0.0
     assert list(result["success_rate"]) == ["get wood, get iron", "get iron, get grass"]
-    assert not out.with_suffix(".png").exists()
+    assert not out.with_suffix(".png").exists() and result["boundary_threshold"] is None
+    assert result["parse_statistics"]["segments_per_episode"] == result["parse_statistics"]["true_segments_per_episode"]
     assert ocn_eval.main([*base, "--out", str(tmp_path / "x.json"), "--mcap", str(tmp_path / "x.mcap")]) == 2
+
+
+def test_ocn_eval_count_free_read_out(ompn_checkpoint, ocn_checkpoint, craft_dataset, tmp_path, capsys):
+    """--boundary-threshold parses OMPN without the true counts; it is refused out of range and for
+    a model that has no such read-out."""
+    out = tmp_path / "eval.json"
+    base = ["--root", str(craft_dataset), "--repo-id", CRAFT_REPO_ID, "--rollouts", "1"]
+    assert ocn_eval.main(["--policy", str(ompn_checkpoint), *base, "--out", str(out), "--boundary-threshold", "0.5"]) == 0
+    result = json.loads(out.read_text())
+    assert result["boundary_threshold"] == 0.5 and 0.0 <= result["f1_tol0"] <= result["f1_tol1"] <= 1.0
+    policy, preprocessor = reload_checkpoint(ompn_checkpoint, OMPNPolicy)
+    policy.config.boundary_threshold = 0.5
+    episodes = load_episodes(craft_dataset, split_episodes(craft_dataset, "val"))
+    parses = segment_episodes(policy, preprocessor, episodes)
+    depths = policy.parse(preprocessor({
+        OBS_STATE: torch.from_numpy(episodes.state).float(), ACTION: torch.from_numpy(episodes.action).float(),
+        f"{ACTION}_is_pad": torch.from_numpy(~episodes.mask), "task": episodes.tasks,
+    }))
+    for i, parse in enumerate(parses):
+        n = episodes.lengths[i]
+        assert parse.boundaries.tolist() == threshold_boundaries(depths["depth"][i, :n].numpy(), 0.5).tolist()
+    segments = np.mean([len(parse.boundaries) for parse in parses])
+    assert result["parse_statistics"]["segments_per_episode"] == pytest.approx(segments)
+    assert ocn_eval.main(["--policy", str(ompn_checkpoint), *base, "--out", str(out), "--boundary-threshold", "1"]) == 2
+    assert "boundary_threshold must lie in (0, 1)" in capsys.readouterr().err
+    assert ocn_eval.main(["--policy", str(ocn_checkpoint), *base, "--out", str(out), "--boundary-threshold", "0.5"]) == 2
+    assert "`ocn` has none" in capsys.readouterr().err
 
 
 def test_shared_metrics_read_only_the_predictions(ompn_checkpoint, ocn_checkpoint, craft_dataset):

@@ -21,7 +21,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import EpisodeArrays
 from policies.ocn import OCNPolicy
-from policies.ompn.modeling_ompn import expansion_boundaries
+from policies.ompn.modeling_ompn import expansion_boundaries, threshold_boundaries
 from tools.parsing_metrics import boundaries_from_labels, parsing_scores, segment_starts
 
 Processor = Callable[[Any], Any]
@@ -154,11 +154,18 @@ def _ompn_segmentations(
 ) -> list[Segmentation]:
     """OMPN: per episode, `expansion_boundaries` (its top-k read-out in the shared boundary
     convention), k = the episode's number of ground-truth boundaries (OMPN is told how many, as in
-    its own evaluation)."""
+    its own evaluation); or, when the config sets `boundary_threshold`, the count-free
+    `threshold_boundaries`."""
+    threshold = policy.config.boundary_threshold
     counts = [boundaries_from_labels(episodes.subtask_index[i, :n]).size for i, n in enumerate(episodes.lengths)]
     parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("depth", "action_log_prob"))
     return [
-        Segmentation(expansion_boundaries(episode["depth"], k), None, episode["action_log_prob"])
+        Segmentation(
+            expansion_boundaries(episode["depth"], k) if threshold is None
+            else threshold_boundaries(episode["depth"], threshold),
+            None,
+            episode["action_log_prob"],
+        )
         for episode, k in zip(parsed, counts, strict=True)
     ]
 

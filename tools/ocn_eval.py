@@ -11,7 +11,8 @@ PNG beside the JSON. With --oracle-tasks it also runs the frozen options on othe
 finetuning tasks, say) under an oracle controller (`tools.rollouts.oracle_controller_success`):
 the ceiling a finetuned controller over these options can reach. Every model type parses through
 `tools.episode_parsing` (OMPN: the top-k steps of its expected expansion; compILE: its argmax
-segment boundaries, labelled by its concrete latents); what does not apply to a model (OMPN has
+segment boundaries, labelled by its concrete latents; --boundary-threshold gives OMPN a read-out
+that is not told the number of subtasks); what does not apply to a model (OMPN has
 no labels, OMPN and compILE no options, compILE no per-step NLL) is null in the JSON, with the
 reason under "not_applicable".
 """
@@ -19,6 +20,7 @@ reason under "not_applicable".
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -48,6 +50,10 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="also measure the frozen options on these tasks (e.g. ADC,CAD,DCA or 124,481) under an "
                              "oracle controller that starts, at every decision, the option with the best option x "
                              "subtask success on the current subtask: the ceiling of finetuning over these options")
+    parser.add_argument("--boundary-threshold", type=float, default=None,
+                        help="an ompn checkpoint's count-free read-out: one boundary per run of steps whose scaled "
+                             "expected expansion height exceeds this value in (0, 1) (default: its checkpoint's "
+                             "`boundary_threshold`; None there means top-k, told each episode's number of subtasks)")
     parser.add_argument("--mcap", type=Path, default=None,
                         help="also log every free-run step (state, action, p^c, option, termination, reward) to "
                              "this MCAP file, which must not exist")
@@ -90,6 +96,13 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     info = read_info(args.root)
     policy, preprocessor, postprocessor = load_policy(args.policy, args.device)
     parser = parser_of(policy)
+    readout = {}
+    if policy.name == "ompn":
+        if args.boundary_threshold is not None:  # a new config, so that its checks run on the value
+            policy.config = dataclasses.replace(policy.config, boundary_threshold=args.boundary_threshold)
+        readout = {"boundary_threshold": policy.config.boundary_threshold}
+    elif args.boundary_threshold is not None:
+        raise ValueError(f"--boundary-threshold sets an ompn checkpoint's read-out; `{policy.name}` has none.")
     has_options = isinstance(policy, rollouts.OptionPolicy)
     if args.mcap is not None and not has_options:
         raise ValueError(f"--mcap logs the option choices of a policy made of options; `{policy.name}` has none.")
@@ -171,6 +184,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         "rollouts_per_cell": args.rollouts,
         "policy": str(args.policy),
         "policy_type": policy.name,
+        **readout,
         "world": world.name,
         "dataset": {"root": str(args.root), "repo_id": args.repo_id},
         "wall_s": round(time.perf_counter() - started, 2),

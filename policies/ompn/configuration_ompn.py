@@ -24,6 +24,11 @@ class OMPNConfig(SequenceConfig):
     state) and the task list are `SequenceConfig`'s. OMPN's own free runs act greedily; the default
     here samples, as OCN's evaluation does, so that success rates compare (set
     `inference_mode="greedy"` for OMPN's protocol).
+
+    `boundary_threshold` picks the boundary read-out of the parse (`ocn-eval`): None, the top-k
+    steps of the expected expansion with k told by each episode's true number of subtasks, as OMPN
+    evaluates; a value in (0, 1), the count-free read-out at that threshold of the scaled height
+    (`modeling_ompn.threshold_boundaries`), which, like OCN's, is told nothing.
     """
 
     model_name: ClassVar[str] = "OMPN"
@@ -35,6 +40,8 @@ class OMPNConfig(SequenceConfig):
     optimizer_lr: float = 1e-3
     optimizer_grad_clip_norm: float = 0.2
 
+    boundary_threshold: float | None = None
+
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.n_slots < 2:
@@ -43,3 +50,5 @@ class OMPNConfig(SequenceConfig):
             raise ValueError(
                 f"hidden_size and cell_hidden_size must be >= 1, got {self.hidden_size} and {self.cell_hidden_size}."
             )
+        if self.boundary_threshold is not None and not 0.0 < self.boundary_threshold < 1.0:
+            raise ValueError(f"boundary_threshold must lie in (0, 1) or be None, got {self.boundary_threshold}.")

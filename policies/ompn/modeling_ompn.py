@@ -51,6 +51,31 @@ def expansion_boundaries(depth: np.ndarray, count: int) -> np.ndarray:
     return np.append(starts - 1, depth.size - 1).astype(np.int64)
 
 
+def threshold_boundaries(depth: np.ndarray, threshold: float) -> np.ndarray:
+    """OMPN's count-free read-out of one episode, in the same convention as `expansion_boundaries`.
+
+    The expected expansion height is scaled to [0, 1] over the episode (its lowest step 0, its
+    highest 1); every run of consecutive steps above `threshold` starts one new subtask, at the run's
+    highest step (ties to the earlier), so the boundary is the step before it. The run that holds
+    step 0 (a full expansion by construction) is the episode's own start and adds none. OMPN's code
+    thresholds the same scaled height (at 0.4, 0.5 and 0.6), but ends each segment at its run's last
+    step and keeps at most the true number of boundaries; here nothing is told the count.
+    """
+    if not 0.0 < threshold < 1.0:
+        raise ValueError(f"The boundary threshold must lie in (0, 1), got {threshold}.")
+    depth = np.asarray(depth, dtype=np.float64)
+    span = depth.max() - depth.min()
+    high = (depth - depth.min()) / span > threshold if span > 0 else np.zeros(depth.size, dtype=bool)
+    high[0] = True
+    # Steps after which `high` changes: the first run (from step 0) ends at the first, and the
+    # others alternate: a later run starts after each odd-numbered one and ends at the next.
+    edges = np.flatnonzero(np.diff(high.astype(np.int8))) + 1
+    run_starts = edges[1::2]
+    run_ends = np.append(edges[2::2], depth.size)[: run_starts.size]
+    starts = [start + int(np.argmax(depth[start:end])) for start, end in zip(run_starts, run_ends, strict=True)]
+    return np.append(np.asarray(starts, dtype=np.int64) - 1, depth.size - 1).astype(np.int64)
+
+
 class OMPNPolicy(SequencePolicy, PreTrainedPolicy):
     """Ordered Memory Policy Network: a few memory slots updated up to a soft, learned height each step."""
 
