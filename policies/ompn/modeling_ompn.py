@@ -54,8 +54,8 @@ def expansion_boundaries(depth: np.ndarray, count: int) -> np.ndarray:
 def threshold_boundaries(depth: np.ndarray, threshold: float) -> np.ndarray:
     """OMPN's count-free read-out of one episode, in the same convention as `expansion_boundaries`.
 
-    The expected expansion height is scaled to [0, 1] over the episode (its lowest step 0, its
-    highest 1); every run of consecutive steps above `threshold` starts one new subtask, at the run's
+    The expected expansion height is scaled to [0, 1] over the episode (the episode's lowest height
+    to 0, its highest to 1); every run of consecutive steps above `threshold` starts one new subtask, at the run's
     highest step (ties to the earlier), so the boundary is the step before it. The run that holds
     step 0 (a full expansion by construction) is the episode's own start and adds none. OMPN's code
     thresholds the same scaled height (at 0.4, 0.5 and 0.6), but ends each segment at its run's last
