@@ -122,6 +122,13 @@ def combine_parsing(studies: dict[Path, dict[str, Any]]) -> dict[str, Any]:
     return {"settings": recipe, "sources": sources, **merged}
 
 
+# Per kind of results file: how its files merge, and how the merged study is written and shown.
+KINDS = {
+    "finetune": (combine, finetune.write_study_files, finetune.markdown),
+    "parsing": (combine_parsing, parsing.write_study_files, parsing.markdown),
+}
+
+
 def study_runs(path: Path, study: dict[str, Any], labels: list[str]) -> list[dict[str, Any]]:
     """A results file's runs, each with its curve and its values at the budget. Files written before
     runs kept their curves have them only as rows over seeds; a row of one seed is that seed's run
@@ -154,15 +161,10 @@ def run(args: argparse.Namespace) -> int:
     kinds = {path: kind_of(study) for path, study in studies.items()}
     if len(set(kinds.values())) > 1:
         raise SystemExit(f"ocn-reproduce combine: the files are of different kinds: {_listing(kinds)}")
-    if next(iter(kinds.values())) == "parsing":
-        result = {**provenance(args), **combine_parsing(studies)}  # the recipe replaces this invocation's settings
-        parsing.write_study_files(args.results, result)
-        print(parsing.markdown(result))
-        return 0
-    merged = combine(studies)
-    result = {**provenance(args), **merged}  # the recipe's settings replace this invocation's arguments
-    finetune.write_study_files(args.results, SETTINGS[merged["setting"]], result)
-    print(finetune.markdown(result))
+    merge, write_study_files, markdown = KINDS[next(iter(kinds.values()))]
+    result = {**provenance(args), **merge(studies)}  # the recipe's settings replace this invocation's arguments
+    write_study_files(args.results, result)
+    print(markdown(result))
     return 0
 
 

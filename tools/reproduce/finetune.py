@@ -419,12 +419,13 @@ def write_results(args: argparse.Namespace, setting: Setting, runs: list[dict[st
         "runs": runs,
         "wall_s": round(wall_s, 1),
     }
-    write_study_files(args.results, setting, result)
+    write_study_files(args.results, result)
     return result
 
 
-def write_study_files(results: Path, setting: Setting, result: dict[str, Any]) -> None:
-    """`finetune_<setting>.{json,md,png}` of a study's result in the folder `results`."""
+def write_study_files(results: Path, result: dict[str, Any]) -> None:
+    """`finetune_<setting>.{json,md,png}` of a study's result (whose `setting` names it) in the folder `results`."""
+    setting = SETTINGS[result["setting"]]
     stem = write_result_files(results, f"finetune_{setting.name}", result, markdown(result))
     title = f"Finetuning in Craft {setting.name.upper()} ({setting.tasks}): mean and std over seeds"
     plot(result["summary"], METHODS, task_labels(setting), "std", title, stem.with_suffix(".png"))
