@@ -102,3 +102,23 @@ def test_ocn_bench_ppo_writes_both_pools_rates_and_the_replay_ratio(tmp_path):
         assert p["frames"] > 0 and p["frames_per_s"] > 0 and p["replay"]["speedup"] > 0
     report = out.with_suffix(".md").read_text()
     assert "Conditions: test" in report and "| flat pool (a decision every step" in report
+
+
+def test_ocn_bench_stacked_writes_one_row_per_setting_and_refuses_bad_lists(tmp_path, capsys):
+    import json
+
+    import pytest
+
+    from tools.bench import main
+
+    out = tmp_path / "bench_stacked.json"
+    main(["stacked", "--batch-sizes", "1,3", "--threads", "1", "--window", "4", "--rounds", "1", "--out", str(out)])
+    rows = json.loads(out.read_text())["rows"]
+    assert [(row["batch_size"], row["threads"]) for row in rows] == [(1, 1), (3, 1)]
+    for row in rows:
+        assert row["speedup"] == pytest.approx(row["stacked_frames_per_s"] / row["loop_frames_per_s"])
+    assert f"| 3 | 1 | {rows[1]['stacked_frames_per_s']:,.0f} |" in out.with_suffix(".md").read_text()
+    for bad in ("0,8", "8,x"):
+        with pytest.raises(SystemExit):
+            main(["stacked", "--batch-sizes", bad, "--out", str(out)])
+        assert "--batch-sizes" in capsys.readouterr().err

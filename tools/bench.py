@@ -10,6 +10,10 @@
 latency under `torch.inference_mode`, as `lerobot-eval` calls it (`--only latency`: that alone,
 printed and not written, for checking it without the minutes of training runs).
 
+`ocn-bench stacked` sweeps that stacked-against-looped comparison over batch sizes and math threads,
+from the batch of one `select_action` env to the 512 windows of the training row, to show where
+stacking the options pays.
+
 `ocn-bench view` times `ocn-view` writing an .rrd of 50 validation episodes with a trained
 checkpoint, as a whole subprocess (interpreter start and imports included) and as the logging
 alone that it reports.
@@ -39,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from tools import console_script
 
@@ -554,6 +559,42 @@ def _train_markdown(r: dict) -> str:
     )
 
 
+def run_stacked_bench(args: argparse.Namespace) -> None:
+    """The stacked option cells against the per-option loop, for every batch size and thread count."""
+    from policies.ocn.benchmark import compare_stacked_vs_loop
+
+    settings = [(batch, threads) for threads in args.threads for batch in args.batch_sizes]
+    rows = []
+    for batch, threads in tqdm(settings, desc="stacked vs loop", unit="setting"):
+        ratio = compare_stacked_vs_loop(batch_size=batch, window=args.window, threads=threads, rounds=args.rounds)
+        rows.append({"batch_size": batch, "threads": threads, **ratio})
+    result = {"benchmark": "ocn-bench stacked", "machine": machine(), "note": args.note, "window": args.window,
+              "n_options": 3, "hidden_size": 128, "rounds": args.rounds, "rows": rows}
+    _write(result, Path(args.out), _stacked_markdown(result))
+
+
+def _stacked_markdown(r: dict) -> str:
+    m = r["machine"]
+    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    rows = "".join(
+        f"| {row['batch_size']} | {row['threads']} | {row['stacked_frames_per_s']:,.0f} | "
+        f"{row['loop_frames_per_s']:,.0f} | **{row['speedup']:.2f}x** |\n"
+        for row in r["rows"]
+    )
+    return (
+        "# Stacked option cells against a per-option loop\n\n"
+        f"Command: `ocn-bench stacked`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}; on the CPU.\n\n"
+        f"{conditions}"
+        f"One forward + backward of a whole OCN ({r['n_options']} options and the controller, width "
+        f"{r['hidden_size']}) over a batch of windows of {r['window']} steps, with the cells stacked "
+        "(`policies.ocn.cell.StackedCell`: one batched matmul per layer for all options) and with the same "
+        "weights evaluated one option at a time in a Python loop (`policies.ocn.benchmark.LoopedCell`). The "
+        f"two alternate, {r['rounds']} rounds, and the fastest run of each counts.\n\n"
+        "| windows per batch | math threads | stacked (frames/s) | loop (frames/s) | stacked against loop |\n"
+        "|---|---|---|---|---|\n" + rows
+    )
+
+
 def run_view_bench(args: argparse.Namespace) -> None:
     """Whole `ocn-view --save` subprocesses, best of `--repeats`, and the .rrd written."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -641,6 +682,17 @@ def _ppo_markdown(r: dict) -> str:
     )
 
 
+def _int_list(text: str) -> list[int]:
+    """A comma-separated list of positive integers, e.g. `1,8,64`."""
+    try:
+        values = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
+    return values
+
+
 def _bench(sub: Any, name: str, func: Callable[[argparse.Namespace], None], help: str) -> argparse.ArgumentParser:
     """A benchmark's subcommand, with the --out and --note every benchmark takes."""
     parser = sub.add_parser(name, help=help)
@@ -674,6 +726,11 @@ def main(argv: list[str] | None = None) -> None:
                   "Dial env steps/s, its physics rate against bare mj_step, expert success")
     dial.add_argument("--steps", type=int, default=2000, help="env steps per timing")
     dial.add_argument("--pins", type=int, default=200, help="random two-digit PINs for the expert success rate")
+    stacked = _bench(sub, "stacked", run_stacked_bench, "stacked option cells against a per-option loop, swept")
+    stacked.add_argument("--batch-sizes", type=_int_list, default=[1, 8, 64, 512], help="windows per batch, e.g. 1,8,64")
+    stacked.add_argument("--threads", type=_int_list, default=[1, 2], help="math threads, e.g. 1,2")
+    stacked.add_argument("--window", type=int, default=32, help="steps per window")
+    stacked.add_argument("--rounds", type=int, default=3, help="alternated timings of each; the fastest counts")
     view = _bench(sub, "view", run_view_bench, "ocn-view writing an .rrd of 50 episodes with a trained checkpoint")
     view.add_argument("--root", default="outputs/reproduce/craft_s1", help="a recorded Craft dataset")
     view.add_argument("--repo-id", default="local/craft_s1")
