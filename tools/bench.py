@@ -11,7 +11,7 @@ latency under `torch.inference_mode`, as `lerobot-eval` calls it (`--only latenc
 printed and not written, for checking it without the minutes of training runs).
 
 `ocn-bench stacked` sweeps that stacked-against-looped comparison over batch sizes and math threads,
-from the batch of one `select_action` env to the 512 windows of the training row, to show where
+from the batch of one `select_action` env to the 512 windows that `ocn-bench train` times, to show where
 stacking the options pays.
 
 `ocn-bench view` times `ocn-view` writing an .rrd of 50 validation episodes with a trained
@@ -563,13 +563,15 @@ def run_stacked_bench(args: argparse.Namespace) -> None:
     """The stacked option cells against the per-option loop, for every batch size and thread count."""
     from policies.ocn.benchmark import compare_stacked_vs_loop
 
+    model = {"n_options": 3, "hidden_size": 128}  # the S1 policy's pool and width
     settings = [(batch, threads) for threads in args.threads for batch in args.batch_sizes]
     rows = []
     for batch, threads in tqdm(settings, desc="stacked vs loop", unit="setting"):
-        ratio = compare_stacked_vs_loop(batch_size=batch, window=args.window, threads=threads, rounds=args.rounds)
+        ratio = compare_stacked_vs_loop(batch_size=batch, window=args.window, threads=threads, rounds=args.rounds,
+                                        **model)
         rows.append({"batch_size": batch, "threads": threads, **ratio})
     result = {"benchmark": "ocn-bench stacked", "machine": machine(), "note": args.note, "window": args.window,
-              "n_options": 3, "hidden_size": 128, "rounds": args.rounds, "rows": rows}
+              **model, "rounds": args.rounds, "rows": rows}
     _write(result, Path(args.out), _stacked_markdown(result))
 
 
