@@ -112,12 +112,15 @@ def test_ocn_bench_stacked_writes_one_row_per_setting_and_refuses_bad_lists(tmp_
     from tools.bench import main
 
     out = tmp_path / "bench_stacked.json"
-    main(["stacked", "--batch-sizes", "1,3", "--threads", "1", "--window", "4", "--rounds", "1", "--out", str(out)])
+    main(["stacked", "--options", "2,3", "--batch-sizes", "1,3", "--threads", "1", "--window", "4", "--rounds", "1",
+          "--out", str(out)])
     rows = json.loads(out.read_text())["rows"]
-    assert [(row["batch_size"], row["threads"]) for row in rows] == [(1, 1), (3, 1)]
+    assert [(row["n_options"], row["batch_size"], row["threads"]) for row in rows] == [
+        (2, 1, 1), (2, 3, 1), (3, 1, 1), (3, 3, 1)]
     for row in rows:
         assert row["speedup"] == pytest.approx(row["stacked_frames_per_s"] / row["loop_frames_per_s"])
-    assert f"| 3 | 1 | {rows[1]['stacked_frames_per_s']:,.0f} |" in out.with_suffix(".md").read_text()
+    assert [row["overhead_bound"] for row in rows] == pytest.approx([5 / 3, 5 / 3, 7 / 3, 7 / 3])
+    assert f"| 3 | 3 | 1 | {rows[3]['stacked_frames_per_s']:,.0f} |" in out.with_suffix(".md").read_text()
     for bad in ("0,8", "8,x"):
         with pytest.raises(SystemExit):
             main(["stacked", "--batch-sizes", bad, "--out", str(out)])

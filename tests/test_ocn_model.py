@@ -100,7 +100,8 @@ def test_looped_cells_give_the_same_loss_and_gradients():
     loss_s.backward()
     loss_l.backward()
     torch.testing.assert_close(loss_s, loss_l)
-    torch.testing.assert_close(stacked.core.options.w_h.grad, looped.core.options.w_h.grad)
+    looped_grads = torch.stack([w.grad for w in looped.core.options.w_h])
+    torch.testing.assert_close(stacked.core.options.w_h.grad, looped_grads)
 
 
 # ---- recurrence, eq. 8-17 --------------------------------------------------------------------------

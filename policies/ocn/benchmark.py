@@ -1,7 +1,7 @@
 """Speed measurements of the OCN policy, as functions for benchmark tools to call.
 
-The baseline for the stacked cell is `LoopedCell`: the same parameters evaluated one module at a
-time in a Python loop, i.e. what a list of per-option networks would cost.
+The baseline for the stacked cell is `LoopedCell`: the same parameter values held per module and
+evaluated one module at a time in a Python loop, i.e. what a list of per-option networks would cost.
 """
 
 import copy
@@ -12,50 +12,54 @@ from contextlib import contextmanager
 from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from envs.craft.observation import OMPN_DIM
 
-from .cell import CellOutput, StackedCell
+from .cell import CellOutput, StackedCell, split_heads
 from .configuration_ocn import OCNConfig
 from .modeling_ocn import OCNPolicy
 
 BENCH_TASKS = ["task 0", "task 1", "task 2"]
 
 
-class LoopedCell(StackedCell):
-    """A `StackedCell` evaluated with one matmul chain per module (the per-option loop baseline)."""
+class LoopedCell(nn.Module):
+    """The cells of a `StackedCell` as N separate networks, each with its own parameters, evaluated one
+    after another: what a list of per-option modules would cost (the per-option loop baseline)."""
 
-    @classmethod
-    def from_cell(cls, cell: StackedCell) -> "LoopedCell":
-        """A looped copy holding the same parameter values as `cell`."""
-        n_modules, in_dim, width = cell.w_x.shape
-        depth = len(cell.w_mlp) + 1
-        looped = cls(n_modules, in_dim, cell.hidden_size, width, depth, cell.n_out, cell.with_end)
-        looped.load_state_dict(cell.state_dict())
-        return looped.to(cell.w_x.device)
+    def __init__(self, cell: StackedCell) -> None:
+        super().__init__()
+        self.n_modules, self.hidden_size, self.n_out, self.with_end = (
+            cell.n_modules, cell.hidden_size, cell.n_out, cell.with_end)
+
+        def per_module(stacked: Tensor) -> nn.ParameterList:
+            return nn.ParameterList(nn.Parameter(part.detach().clone()) for part in stacked.unbind(0))
+
+        self.w_x, self.b_in, self.w_h, self.w_out, self.b_out = (
+            per_module(w) for w in (cell.w_x, cell.b_in, cell.w_h, cell.w_out, cell.b_out))
+        self.w_mlp = nn.ModuleList(per_module(w) for w in cell.w_mlp)
+        self.b_mlp = nn.ModuleList(per_module(b) for b in cell.b_mlp)
 
     def project(self, x: Tensor) -> Tensor:
-        parts = [x @ self.w_x[i] + self.b_in[i] for i in range(self.n_modules)]
-        return torch.stack(parts, dim=-3)
+        return torch.stack([x @ w + b for w, b in zip(self.w_x, self.b_in, strict=True)], dim=-3)
 
     def step(self, x_proj: Tensor, h: Tensor) -> CellOutput:
         outs = []
-        for i in range(self.n_modules):
-            act = torch.tanh(x_proj[i] + h[i] @ self.w_h[i])
-            for weight, bias in zip(self.w_mlp, self.b_mlp, strict=True):
-                act = torch.tanh(act @ weight[i] + bias[i])
+        for i, (x_i, h_i) in enumerate(zip(x_proj.unbind(0), h.unbind(0), strict=True)):
+            act = torch.tanh(x_i + h_i @ self.w_h[i])
+            for weights, biases in zip(self.w_mlp, self.b_mlp, strict=True):
+                act = torch.tanh(act @ weights[i] + biases[i])
             outs.append(act @ self.w_out[i] + self.b_out[i])
-        return self._heads(torch.stack(outs))
+        return split_heads(torch.stack(outs), self.n_out, self.hidden_size, self.with_end)
 
 
 def use_looped_cells(policy: OCNPolicy) -> OCNPolicy:
     """Swap the policy's controller and option cells for looped copies with the same weights."""
-    policy.core.controller = LoopedCell.from_cell(policy.core.controller)
-    policy.core.options = LoopedCell.from_cell(policy.core.options)
+    policy.core.controller = LoopedCell(policy.core.controller)
+    policy.core.options = LoopedCell(policy.core.options)
     return policy
 
 

@@ -67,6 +67,13 @@ class SideBySide:
         return self._matrix
 
 
+def split_heads(out: Tensor, n_out: int, hidden_size: int, with_end: bool) -> CellOutput:
+    """A cell's output layer [N, B, n_out + d_hid (+ 1)] as its output head, new state and termination."""
+    logits, hidden, *end = out.split([n_out, hidden_size, int(with_end)], dim=-1)
+    end_prob = torch.sigmoid(end[0].squeeze(-1)) if with_end else None
+    return CellOutput(logits, torch.tanh(hidden), end_prob)
+
+
 class StackedCell(nn.Module):
     """N independent cells: h^ = MLP([x, h]), out = W_out h^, h = tanh(W_hid h^), e = sigmoid(w_end h^).
 
@@ -122,12 +129,7 @@ class StackedCell(nn.Module):
             act = torch.tanh(x_proj + torch.bmm(h, self.w_h))
         for weight, bias in zip(self.w_mlp, self.b_mlp, strict=True):
             act = torch.tanh(torch.baddbmm(bias, act, weight))
-        return self._heads(torch.baddbmm(self.b_out, act, self.w_out))
-
-    def _heads(self, out: Tensor) -> CellOutput:
-        logits, hidden, *end = out.split([self.n_out, self.hidden_size, int(self.with_end)], dim=-1)
-        end_prob = torch.sigmoid(end[0].squeeze(-1)) if self.with_end else None
-        return CellOutput(logits, torch.tanh(hidden), end_prob)
+        return split_heads(torch.baddbmm(self.b_out, act, self.w_out), self.n_out, self.hidden_size, self.with_end)
 
     def forward(self, x: Tensor, h: Tensor) -> CellOutput:
         """One step from raw observations x [B, in] (shared by all modules) and states h [N, B, d_hid]."""
