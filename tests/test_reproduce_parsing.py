@@ -23,8 +23,11 @@ def _reproduce(tmp_path: Path, *extra: str) -> int:
 
 
 def test_parsing_s1_scores_every_checkpoint_and_writes_results_then_reuses(tmp_path, capsys):
+    import dataclasses
+
     from ocn_data.episodes_table import load_episodes, split_episodes
-    from tools.episode_parsing import load_policy, score_segmentations, segment_episodes
+    from tools.episode_parsing import (BOUNDARY_THRESHOLDS, choose_boundary_threshold, load_policy,
+                                       score_segmentations, segment_episodes)
 
     work, results = tmp_path / "work", tmp_path / "results"
     assert record_demos(["--env", "craft", "--tasks", imitation.S1_TASKS, "--episodes-per-task", "12", "--root",
@@ -47,7 +50,8 @@ def test_parsing_s1_scores_every_checkpoint_and_writes_results_then_reuses(tmp_p
         {"n_options": 3, "temperature": 10.0, "hidden_size": 128, "mlp_hidden_size": 128, "mlp_depth": 2,
          "optimizer_lr": 1e-3, "controller_lr_scale": 1.0})
     assert result["methods"]["OMPN"]["values"]["n_slots"] == 3 and "ompn_craft" in result["methods"]["OMPN"]["source"]
-    assert set(result["summary"]) == {"OCN", "OMPN"} and result["summary"]["OMPN"]["final"]["nmi"] is None
+    assert list(result["summary"]) == ["OCN", "OMPN", "OMPN, count-free"]
+    assert result["summary"]["OMPN"]["final"]["nmi"] is None
     assert set(result["summary"]["OCN"]["curves"]["f1_tol1"]) == {"mean", "std", "min", "max"}
     checks = result["must_show"]
     assert checks[0]["check"].startswith("OCN's F1@1 at or above OMPN's") and isinstance(checks[0]["holds"], bool)
@@ -65,19 +69,51 @@ def test_parsing_s1_scores_every_checkpoint_and_writes_results_then_reuses(tmp_p
     assert {m: row[m] for m in ("f1_tol0", "f1_tol1", "align_acc", "nmi")} == pytest.approx(
         {m: expected[m] for m in ("f1_tol0", "f1_tol1", "align_acc", "nmi")})
 
+    # OMPN is also read out count-free, at the threshold that parses training episodes best, and those
+    # scores are an independent parse's at that threshold.
+    count_free = result["runs"][1]["checkpoints"][-1]["count_free"]
+    tuned = {float(key): value for key, value in count_free["tuning_f1_tol1"].items()}
+    assert set(tuned) == set(BOUNDARY_THRESHOLDS)
+    assert count_free["threshold"] == max(BOUNDARY_THRESHOLDS, key=lambda threshold: (tuned[threshold], -threshold))
+    ompn, ompn_preprocessor, _ = load_policy(work / "parsing_s1" / "ompn" / "seed1" / "train" / "checkpoints"
+                                             / "000002" / "pretrained_model")
+    tuning = load_episodes(data, split_episodes(data, "train")[:len(episodes.tasks)])
+    assert choose_boundary_threshold(ompn, ompn_preprocessor, tuning) == (count_free["threshold"], tuned)
+    assert ompn.config.boundary_threshold is None  # the policy's own read-out is left as it was
+    ompn.config = dataclasses.replace(ompn.config, boundary_threshold=count_free["threshold"])
+    expected = score_segmentations(episodes, segment_episodes(ompn, ompn_preprocessor, episodes))
+    assert {m: count_free[m] for m in ("f1_tol0", "f1_tol1", "align_acc")} == pytest.approx(
+        {m: expected[m] for m in ("f1_tol0", "f1_tol1", "align_acc")}) and count_free["nmi"] is None
+    assert result["summary"]["OMPN, count-free"]["final"]["f1_tol1"]["mean"] == pytest.approx(count_free["f1_tol1"])
+    assert any(check["check"].startswith("OCN's F1@1 at or above OMPN, count-free's") for check in checks)
+
     assert (results / "parsing_s1.png").stat().st_size > 0
     report = (results / "parsing_s1.md").read_text()
     assert "| OCN | 1 | 2 |" in report and "| OMPN | 1 | 2 |" in report and "lerobot-train --policy.type=ompn" in report
+    assert "| OMPN, count-free | 1 | 2 |" in report and f"seed 1 threshold {count_free['threshold']:g}" in report
     assert "k the episode's true number of subtasks" in report
 
     cache = work / "parsing_s1" / "ocn" / "seed1" / "parsing.json"
     scored_at = cache.stat().st_mtime_ns
+    ompn_cache = work / "parsing_s1" / "ompn" / "seed1" / "parsing.json"
+    kept = json.loads(ompn_cache.read_text())
+    ompn_cache.write_text(json.dumps([{key: value for key, value in row.items() if key != "count_free"}
+                                      for row in kept]))  # as scored before the count-free read-out
     assert _reproduce(tmp_path) == 0
     again = capsys.readouterr().out
     assert f"training {work}" not in again and "resuming" not in again and cache.stat().st_mtime_ns == scored_at
+    rescored = json.loads(ompn_cache.read_text())  # the kept scores without it were made again
+    assert [row["count_free"] for row in rescored] == [row["count_free"] for row in kept]
 
     with pytest.raises(SystemExit, match="trained with other settings"):
         _reproduce(tmp_path, "--steps", "1")
+
+    # A later seed in an invocation of its own (for `ocn-reproduce combine`) trains that seed alone.
+    assert main([*TINY, "--workdir", str(work), "--results", str(tmp_path / "seed2"), "--methods", "ocn",
+                 "--first-seed", "2"]) == 0
+    assert "[1/1] OCN seed 2: 2 checkpoints scored" in capsys.readouterr().out
+    later = json.loads((tmp_path / "seed2" / "parsing_s1.json").read_text())
+    assert [(run["method"], run["seed"]) for run in later["runs"]] == [("OCN", 2)]
 
 
 def test_a_run_without_the_wanted_checkpoints_is_refused(tmp_path):

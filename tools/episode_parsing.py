@@ -5,10 +5,12 @@ Checkpoints load with `load_policy` (any registered type) or `load_ocn` (tools t
 options). `parse_episodes` gives OCN's per-step hierarchy of whole episodes; `segment_episodes`
 gives every model type's parse in the one form the shared parsing metrics read (a `Segmentation`
 per episode), through that type's entry in `PARSERS`: a new model type adds an entry there.
+`choose_boundary_threshold` tunes OMPN's count-free read-out on training episodes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -323,3 +325,29 @@ def score_segmentations(episodes: EpisodeArrays, parses: Sequence[Segmentation])
     scores: dict[str, float | None] = parsing_scores(segments, subtasks, [parse.boundaries for parse in parses], labels)
     scores.setdefault("nmi", None)
     return scores
+
+
+# Thresholds of OMPN's count-free read-out tried by `choose_boundary_threshold`: OMPN's own code uses
+# 0.4-0.6 on the same scaled height; the lower ones find the shallow expansions of later subtasks.
+BOUNDARY_THRESHOLDS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+
+
+def choose_boundary_threshold(
+    policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays,
+    thresholds: Sequence[float] = BOUNDARY_THRESHOLDS,
+) -> tuple[float, dict[float, float]]:
+    """The threshold of OMPN's count-free read-out (`threshold_boundaries`) whose parse of `episodes`
+    has the best F1@1 (ties to the lower), and each threshold's F1@1. Pass training episodes: the
+    threshold is a setting of the read-out, so it is chosen on episodes the reported scores do not
+    use. The policy's own read-out is left as it was."""
+    if not hasattr(policy.config, "boundary_threshold"):
+        raise ValueError(f"`{policy.name}` has no count-free boundary read-out to tune.")
+    config = policy.config
+    f1 = {}
+    try:
+        for threshold in thresholds:
+            policy.config = dataclasses.replace(config, boundary_threshold=threshold)
+            f1[threshold] = score_segmentations(episodes, segment_episodes(policy, preprocessor, episodes))["f1_tol1"]
+    finally:
+        policy.config = config
+    return max(thresholds, key=lambda threshold: (f1[threshold], -threshold)), f1

@@ -113,7 +113,7 @@ def combine_parsing(studies: dict[Path, dict[str, Any]]) -> dict[str, Any]:
     together, so that seeds of one method from several files make one curve, the checks and the
     baseline wins made again, and where each file came from. Files of different recipes or
     validation splits, and a run (method and seed) found in two files, are refused."""
-    recipe = same_recipe({path: {**study["settings"], "val_episodes": study["val_episodes"]}
+    recipe = same_recipe({path: {**parsing.study_settings(study), "val_episodes": study["val_episodes"]}
                           for path, study in studies.items()}, (*parsing.RECIPE, "val_episodes"))
     runs, sources = gather_runs(studies, lambda _, study: study["runs"], ("method", "seed"),
                                 [method.name for method in parsing.METHODS])

@@ -15,15 +15,20 @@ with the same steps, batch and windows for all, keeping a checkpoint every `--ev
 Every saved checkpoint is then parsed on the validation split, in this process, and scored with
 the shared parsing metrics only (`tools.episode_parsing`): F1@0, F1@1, task alignment and NMI (NMI
 only for a model with per-step labels: OMPN has none). No env rollouts are run: they would cost far
-more than the parse at every checkpoint.
+more than the parse at every checkpoint. OMPN's checkpoints are read out twice: top-k, told each
+episode's true number of subtasks as in OMPN's own evaluation, and count-free, as OCN's parse is,
+with the threshold of `threshold_boundaries` chosen at each checkpoint on as many training episodes
+as the validation split holds (`choose_boundary_threshold`); the count-free read-out is the row
+"OMPN, count-free". `--dart-noise` reads the DART recording of `imitation-s1 --dart-noise`.
 
 Writes results/parsing_s1.json (every method, seed and step with the four metrics, each method's
 hyperparameters and where they come from, the checks), results/parsing_s1.md (the checks, the final
 values as mean ± std over seeds, every baseline win, the commands, the machine, wall times) and
 results/parsing_s1.png (one panel per metric against the training step: each method's mean over
 seeds with its min-max band), rewritten after every finished run. The checks: OCN's F1@1 and NMI at
-or above OMPN's at the end of training (NMI cannot be compared with OMPN, which has no labels, so it
-is compared with compILE's and HIL's instead), and every metric where any baseline ends above OCN.
+or above OMPN's at the end of training, under both of OMPN's read-outs (NMI cannot be compared with
+OMPN, which has no labels, so it is compared with compILE's and HIL's instead), and every metric
+where any baseline ends above OCN.
 
 Finished runs and their scores are reused, so an interrupted reproduction continues (a stopped
 training run resumes from its last checkpoint); a run folder trained with other settings is refused,
@@ -54,6 +59,9 @@ METRICS = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "task alignment", 
 _FINETUNED = {method.key: method for method in finetune.METHODS}
 METHODS = (_FINETUNED["ocn"], _FINETUNED["ompn"], _FINETUNED["compile"], _FINETUNED["hil"])
 OCN = METHODS[0].name
+OMPN_COUNT_FREE = "OMPN, count-free"  # OMPN's runs under the count-free read-out (the rows' `count_free`)
+# The rows of a study's summary, in order: each method, and OMPN's second read-out after it.
+ROWS = (OCN, "OMPN", OMPN_COUNT_FREE, *(method.name for method in METHODS[2:]))
 # Per method: the config fields reported as its hyperparameters (read back from the trained
 # checkpoint's config.json) and where their values come from.
 HYPERPARAMETERS: dict[str, tuple[tuple[str, ...], str]] = {
@@ -89,14 +97,21 @@ HYPERPARAMETERS: dict[str, tuple[tuple[str, ...], str]] = {
 EXPERIMENT = "parsing-s1"  # the subcommand, kept in a results file's settings as its kind
 # Settings that change what a run measures: the results files `ocn-reproduce combine` merges agree on each.
 RECIPE = ("experiment", "steps", "batch_size", "window_size", "eval_every", "controller_lr_scale", "episodes_per_task",
-          "data_seed", "window_start", "usage_balance")
+          "data_seed", "dart_noise", "window_start", "usage_balance")
 
 # How each model's boundaries are read, said beside every comparison: OMPN is given a count.
 READOUT_NOTE = (
     "How the boundaries are read: OMPN's are its top-k expansions with k the episode's true number of "
-    "subtasks, as in its own evaluation (`tools.episode_parsing`), so it is told how many to place; OCN's "
-    "and HIL's are where the chosen option changes, compILE's its argmax segment ends, with no count given."
+    "subtasks, as in its own evaluation (`tools.episode_parsing`), so it is told how many to place; "
+    "\"OMPN, count-free\" reads the same models with no count, at the expansion threshold chosen on training "
+    "episodes; OCN's and HIL's are where the chosen option changes, compILE's its argmax segment ends, with no "
+    "count given."
 )
+
+
+def study_settings(result: dict[str, Any]) -> dict[str, Any]:
+    """A parsing results file's settings, with the defaults of settings added after it was written."""
+    return {**imitation.RECORDING_DEFAULTS, **result["settings"]}
 
 
 def method_settings(args: argparse.Namespace, method: Method) -> tuple[TrainSettings, dict[str, Any]]:
@@ -125,27 +140,44 @@ def checkpoints(train_dir: Path) -> dict[int, Path]:
     return {int(path.name): path / "pretrained_model" for path in found if path.name.isdigit()}
 
 
-def score_checkpoint(checkpoint: Path, episodes: EpisodeArrays, threads: int) -> dict[str, Any]:
+def score_checkpoint(checkpoint: Path, episodes: EpisodeArrays, threads: int,
+                     tuning: EpisodeArrays | None = None) -> dict[str, Any]:
     """One checkpoint's parse of the episodes, scored with the shared metrics; `no_labels` says why
-    NMI is missing when the model gives no per-step labels."""
+    NMI is missing when the model gives no per-step labels. With `tuning` (training episodes), also
+    `count_free`: the scores of OMPN's count-free read-out at the threshold that parses `tuning` best,
+    with that threshold and every tried threshold's F1@1 there."""
+    import dataclasses
+
     import torch
 
-    from tools.episode_parsing import load_policy, parser_of, score_segmentations, segment_episodes
+    from tools.episode_parsing import (choose_boundary_threshold, load_policy, parser_of, score_segmentations,
+                                       segment_episodes)
 
     torch.set_num_threads(threads)
     started = time.perf_counter()
     policy, preprocessor, _ = load_policy(checkpoint)
-    scores = score_segmentations(episodes, segment_episodes(policy, preprocessor, episodes))
-    row: dict[str, Any] = {metric: scores[metric] for metric in METRICS}
-    if scores["nmi"] is None:
+
+    def scored() -> dict[str, Any]:
+        scores = score_segmentations(episodes, segment_episodes(policy, preprocessor, episodes))
+        return {metric: scores[metric] for metric in METRICS}
+
+    row = scored()
+    if row["nmi"] is None:
         row["no_labels"] = parser_of(policy).no_labels
+    if tuning is not None:
+        threshold, tuned = choose_boundary_threshold(policy, preprocessor, tuning)
+        policy.config = dataclasses.replace(policy.config, boundary_threshold=threshold)
+        row["count_free"] = {**scored(), "threshold": threshold,
+                             "tuning_f1_tol1": {str(key): value for key, value in tuned.items()}}
     return {**row, "wall_s": round(time.perf_counter() - started, 2)}
 
 
-def score_run(folder: Path, steps: list[int], episodes: EpisodeArrays, threads: int) -> list[dict[str, Any]]:
+def score_run(folder: Path, steps: list[int], episodes: EpisodeArrays, threads: int,
+              tuning: EpisodeArrays | None = None) -> list[dict[str, Any]]:
     """Every wanted checkpoint of a trained run, scored (or read back from `parsing.json`, where each
-    score is kept as soon as it is made). A run without a checkpoint at every wanted step was
-    trained with another checkpoint interval and is refused."""
+    score is kept as soon as it is made; a kept score without the count-free read-out that `tuning`
+    asks for is made again). A run without a checkpoint at every wanted step was trained with another
+    checkpoint interval and is refused."""
     saved = checkpoints(folder / "train")
     missing = [step for step in steps if step not in saved]
     if missing:
@@ -156,8 +188,8 @@ def score_run(folder: Path, steps: list[int], episodes: EpisodeArrays, threads: 
     cache = folder / "parsing.json"
     rows = {row["step"]: row for row in json.loads(cache.read_text())} if cache.exists() else {}
     for step in steps:
-        if step not in rows:
-            rows[step] = {"step": step, **score_checkpoint(saved[step], episodes, threads)}
+        if step not in rows or (tuning is not None and "count_free" not in rows[step]):
+            rows[step] = {"step": step, **score_checkpoint(saved[step], episodes, threads, tuning)}
             cache.write_text(json.dumps(sorted(rows.values(), key=lambda row: row["step"]), indent=2) + "\n")
     return [rows[step] for step in steps]
 
@@ -176,12 +208,15 @@ def hyperparameters(method: Method, checkpoint: Path, settings: TrainSettings) -
     }
 
 
-def run_one(args: argparse.Namespace, data: Path, episodes: EpisodeArrays, method: Method, seed: int) -> dict[str, Any]:
-    """Train (unless done) one method and seed, then score every checkpoint (unless done)."""
+def run_one(args: argparse.Namespace, data: Path, episodes: EpisodeArrays, method: Method, seed: int,
+            tuning: EpisodeArrays | None = None) -> dict[str, Any]:
+    """Train (unless done) one method and seed, then score every checkpoint (unless done); OMPN's also
+    under the count-free read-out tuned on `tuning`."""
     folder = run_dir(args, method, seed)
     settings, overrides = method_settings(args, method)
     trained = train_policy(settings, data, imitation.S1_REPO_ID, folder, seed, overrides)
-    scored = score_run(folder, scored_steps(settings.steps, settings.save_every), episodes, args.threads)
+    scored = score_run(folder, scored_steps(settings.steps, settings.save_every), episodes, args.threads,
+                       tuning if method.key == "ompn" else None)
     return {
         "method": method.name, "seed": seed, "train_command": trained.command, **training_record(trained),
         "score_wall_s": round(sum(row["wall_s"] for row in scored), 1),
@@ -190,12 +225,26 @@ def run_one(args: argparse.Namespace, data: Path, episodes: EpisodeArrays, metho
     }
 
 
+def count_free_runs(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """OMPN's runs as read out count-free: one run per OMPN run whose checkpoints all carry the
+    `count_free` scores, named `OMPN_COUNT_FREE`, with those scores and thresholds as its checkpoints."""
+    return [
+        {"method": OMPN_COUNT_FREE, "seed": run["seed"],
+         "checkpoints": [{"step": row["step"], **row["count_free"], "no_labels": "as OMPN's (the same models)"}
+                         for row in run["checkpoints"]]}
+        for run in runs
+        if run["method"] == "OMPN" and all("count_free" in row for row in run["checkpoints"])
+    ]
+
+
 def summarise(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """Per method: the curves over seeds (mean, std, min, max at each step) and the final values
-    (mean and std over seeds at the last step); a metric the method cannot have is None."""
+    """Per row of `ROWS`: the curves over seeds (mean, std, min, max at each step) and the final values
+    (mean and std over seeds at the last step); a metric the method cannot have is None. OMPN's runs
+    give a second row under the count-free read-out where they were scored with it."""
+    runs = runs + count_free_runs(runs)
     summary: dict[str, dict[str, Any]] = {}
-    for method in METHODS:
-        mine = [run for run in runs if run["method"] == method.name]
+    for name in ROWS:
+        mine = [run for run in runs if run["method"] == name]
         if not mine:
             continue
         steps = [row["step"] for row in mine[0]["checkpoints"]]
@@ -208,8 +257,7 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             values = np.array([[row[metric] for row in run["checkpoints"]] for run in mine])
             curves[metric] = over_seeds(values)
             final[metric] = {"mean": float(values[:, -1].mean()), "std": float(values[:, -1].std())}
-        summary[method.name] = {"seeds": [run["seed"] for run in mine], "steps": steps, "curves": curves,
-                                "final": final}
+        summary[name] = {"seeds": [run["seed"] for run in mine], "steps": steps, "curves": curves, "final": final}
     return summary
 
 
@@ -240,6 +288,8 @@ def must_show(summary: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     if "OMPN" in summary:
         checks += [compare(summary, "f1_tol1", "OMPN"),
                    compare(summary, "nmi", "OMPN", " (NMI is compared with compILE and HIL instead)")]
+    if OMPN_COUNT_FREE in summary:
+        checks.append(compare(summary, "f1_tol1", OMPN_COUNT_FREE, " (neither told the number of subtasks)"))
     checks += [compare(summary, "nmi", baseline, " (in place of OMPN, which has no labels)")
                for baseline in ("compILE", "HIL") if baseline in summary]
     return checks
@@ -267,14 +317,16 @@ def plot(summary: dict[str, dict[str, Any]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(METRICS), figsize=(3.4 * len(METRICS), 3.2), sharey=True)
+    colours = {**{method.name: f"C{k}" for k, method in enumerate(METHODS)}, OMPN_COUNT_FREE: "C1"}
     for ax, (metric, label) in zip(axes, METRICS.items(), strict=True):
-        for k, method in enumerate(METHODS):
-            row = summary.get(method.name)
+        for name in ROWS:
+            row = summary.get(name)
             if row is None or row["curves"][metric] is None:
                 continue
             curve = row["curves"][metric]
-            ax.plot(row["steps"], curve["mean"], color=f"C{k}", marker=".", label=method.name)
-            ax.fill_between(row["steps"], curve["min"], curve["max"], color=f"C{k}", alpha=0.2)
+            ax.plot(row["steps"], curve["mean"], color=colours[name], marker=".", label=name,
+                    linestyle="--" if name == OMPN_COUNT_FREE else "-")
+            ax.fill_between(row["steps"], curve["min"], curve["max"], color=colours[name], alpha=0.2)
         ax.set_title(label + (" (OMPN: no labels)" if metric == "nmi" and "OMPN" in summary else ""), fontsize=9)
         ax.set_xlabel("training step")
         ax.set_ylim(-0.02, 1.02)
@@ -297,7 +349,8 @@ def markdown(result: dict[str, Any]) -> str:
         "# Parsing S1 over training: OCN against OMPN, compILE and HIL",
         "",
         f"{origin_words(result)} Every method trained by `lerobot-train` on the S1 train split for {settings['steps']} "
-        f"steps of {settings['batch_size']} {imitation.loading_words(settings)} (window {settings['window_size']}), "
+        f"steps of {settings['batch_size']} {imitation.loading_words(settings)}{imitation.recording_words(settings)} "
+        f"(window {settings['window_size']}), "
         f"a checkpoint every {settings['eval_every']} steps; each checkpoint's parse of the {result['val_episodes']} validation episodes "
         f"scored with the shared metrics (`tools.episode_parsing`), no env rollouts. Runs finished: "
         f"{result['runs_finished']} of {result['runs_planned']}; wall time of "
@@ -336,6 +389,12 @@ def markdown(result: dict[str, Any]) -> str:
         cells = " | ".join("n/a" if last[m] is None else f"{last[m]:.3f}" for m in METRICS)
         lines.append(f"| {run['method']} | {run['seed']} | {len(run['checkpoints'])} | {train_time_words(run)} | "
                      f"{run['score_wall_s']} | {cells} |")
+    tuned = [(run["seed"], run["checkpoints"][-1]) for run in count_free_runs(result["runs"])]
+    if tuned:
+        lines += ["", f"{OMPN_COUNT_FREE}, at the last checkpoint: "
+                  + "; ".join(f"seed {seed} threshold {row['threshold']:g} (F1@1 on the training episodes "
+                              f"{row['tuning_f1_tol1'][str(row['threshold'])]:.3f}, on validation {row['f1_tol1']:.3f})"
+                              for seed, row in tuned) + "."]
     lines += ["", "Curves: `parsing_s1.png`; every checkpoint's scores: `parsing_s1.json`.", ""]
     return "\n".join(lines)
 
@@ -348,8 +407,8 @@ def study(runs: list[dict[str, Any]], planned: int, val_episodes: int, wall_s: f
     for run in runs:
         if run["method"] not in methods:
             methods[run["method"]] = {**run["hyperparameters"], "train_command": run["train_command"]}
-    not_applicable = {run["method"]: row["no_labels"] for run in runs for row in run["checkpoints"]
-                      if "no_labels" in row}
+    not_applicable = {run["method"]: row["no_labels"] for run in runs + count_free_runs(runs)
+                      for row in run["checkpoints"] if row.get("no_labels")}
     return {
         "runs_finished": len(runs),
         "runs_planned": planned,
@@ -390,11 +449,15 @@ def parsing_s1(args: argparse.Namespace) -> int:
         raise SystemExit(f"ocn-reproduce parsing-s1: --eval-every must be >= 1, got {args.eval_every}.")
     data = imitation.s1_data(args)
     episodes = load_episodes(data, split_episodes(data, "val"))
-    planned = [(known[key], seed) for seed in range(1, args.seeds + 1) for key in args.methods]
+    # OMPN's count-free threshold is chosen on as many training episodes as the validation split holds.
+    tuning = (load_episodes(data, split_episodes(data, "train")[:len(episodes.tasks)]) if "ompn" in args.methods
+              else None)
+    planned = [(known[key], seed) for seed in range(args.first_seed, args.first_seed + args.seeds)
+               for key in args.methods]
     runs: list[dict[str, Any]] = []
     result: dict[str, Any] = {}
     for number, (method, seed) in enumerate(planned, 1):
-        runs.append(run_one(args, data, episodes, method, seed))
+        runs.append(run_one(args, data, episodes, method, seed, tuning))
         last = runs[-1]["checkpoints"][-1]
         scores = "  ".join(f"{label} {'n/a' if last[m] is None else f'{last[m]:.3f}'}" for m, label in METRICS.items())
         print(f"[{number}/{len(planned)}] {method.name} seed {seed}: {len(runs[-1]['checkpoints'])} checkpoints "
@@ -421,6 +484,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser(EXPERIMENT, help="parsing of S1 over training, OCN against OMPN, compILE and HIL "
                             "(figure 7)", description=__doc__, epilog=_EPILOG, formatter_class=_HelpFormatter)
     parser.add_argument("--seeds", type=int, default=3, help="seeds per method")
+    parser.add_argument("--first-seed", type=int, default=1,
+                        help="seed to count from, so that the seeds of one study can run in several invocations "
+                             "(joined by `ocn-reproduce combine`)")
     parser.add_argument("--methods", type=lambda s: s.split(","), default=",".join(m.key for m in METHODS),
                         help="comma-separated: " + ",".join(m.key for m in METHODS))
     parser.add_argument("--eval-every", type=int, default=500,
@@ -428,6 +494,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                              "the last step always is")
     imitation.add_training_arguments(parser)
     imitation.add_window_start_argument(parser)
+    imitation.add_dart_noise_argument(parser)
     finetune.add_usage_balance_argument(parser)
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of parsing_s1.{json,md,png}")
     parser.set_defaults(func=parsing_s1)
