@@ -10,7 +10,6 @@ per episode), through that type's entry in `PARSERS`: a new model type adds an e
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -158,9 +157,23 @@ def _ompn_segmentations(
     convention), k = the episode's number of ground-truth boundaries (OMPN is told how many, as in
     its own evaluation); or, when the config sets `boundary_threshold`, the count-free
     `threshold_boundaries`."""
-    threshold = policy.config.boundary_threshold
+    parsed = _ompn_parse(policy, preprocessor, episodes, batch_size)
+    return _ompn_read_out(episodes, parsed, policy.config.boundary_threshold)
+
+
+def _ompn_parse(
+    policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int
+) -> list[dict[str, np.ndarray]]:
+    """OMPN's per-step expected expansion height (`depth`) and action log-likelihood of each episode."""
+    return list(_parsed_episodes(policy, preprocessor, episodes, batch_size, ("depth", "action_log_prob")))
+
+
+def _ompn_read_out(
+    episodes: EpisodeArrays, parsed: Sequence[dict[str, np.ndarray]], threshold: float | None
+) -> list[Segmentation]:
+    """The Segmentations of an OMPN parse (`_ompn_parse`) under one read-out: top-k told each
+    episode's count (`threshold` None) or count-free at `threshold`."""
     counts = [boundaries_from_labels(episodes.subtask_index[i, :n]).size for i, n in enumerate(episodes.lengths)]
-    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("depth", "action_log_prob"))
     return [
         Segmentation(
             expansion_boundaries(episode["depth"], k) if threshold is None
@@ -334,20 +347,16 @@ BOUNDARY_THRESHOLDS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 
 def choose_boundary_threshold(
     policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays,
-    thresholds: Sequence[float] = BOUNDARY_THRESHOLDS,
+    thresholds: Sequence[float] = BOUNDARY_THRESHOLDS, batch_size: int = 1024,
 ) -> tuple[float, dict[float, float]]:
     """The threshold of OMPN's count-free read-out (`threshold_boundaries`) whose parse of `episodes`
     has the best F1@1 (ties to the lower), and each threshold's F1@1. Pass training episodes: the
     threshold is a setting of the read-out, so it is chosen on episodes the reported scores do not
-    use. The policy's own read-out is left as it was."""
+    use. The episodes are parsed once and every threshold reads that parse; the policy's own
+    read-out is not touched."""
     if not hasattr(policy.config, "boundary_threshold"):
         raise ValueError(f"`{policy.name}` has no count-free boundary read-out to tune.")
-    config = policy.config
-    f1 = {}
-    try:
-        for threshold in thresholds:
-            policy.config = dataclasses.replace(config, boundary_threshold=threshold)
-            f1[threshold] = score_segmentations(episodes, segment_episodes(policy, preprocessor, episodes))["f1_tol1"]
-    finally:
-        policy.config = config
+    parsed = _ompn_parse(policy, preprocessor, episodes, batch_size)
+    f1 = {threshold: score_segmentations(episodes, _ompn_read_out(episodes, parsed, threshold))["f1_tol1"]
+          for threshold in thresholds}
     return max(thresholds, key=lambda threshold: (f1[threshold], -threshold)), f1

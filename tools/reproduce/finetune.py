@@ -466,7 +466,7 @@ def chosen_methods(args: argparse.Namespace, methods: tuple[Method, ...]) -> lis
 def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Method, ...], frames: int) -> None:
     """The options of a finetuning study's PPO runs: seeds, budget, envs, rewards and methods."""
     parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--first-seed", type=int, default=1, help="seeds run from this one on")
+    imitation.add_first_seed_argument(parser)
     parser.add_argument("--frames", type=int, default=frames,
                         help="env frames per PPO run (the budget); runs at another budget than the default get "
                              "folders of their own (`ocn_sparse_frames1500000`)")

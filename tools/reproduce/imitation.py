@@ -403,9 +403,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     s1.add_argument("--seeds", type=int, default=5, help="seeds of the main variant (3 options, T=10)")
     s1.add_argument("--ablation-seeds", type=int, default=1, help="seeds of each ablation; 0 skips them")
-    s1.add_argument("--first-seed", type=int, default=1,
-                    help="seed to count from: `--first-seed 3 --seeds 2` trains seeds 3 and 4, so that the seeds "
-                         "of one study can train in several invocations (side by side or in turn) and add up")
+    add_first_seed_argument(s1)
     s1.add_argument("--variants", default=None,
                     help=f"comma-separated variants to run, of {','.join(_slug(v.name) for v in VARIANTS)} "
                          "(default: all); the results files then cover those runs")
@@ -442,6 +440,14 @@ def add_window_start_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window-start", choices=("episode", "packed"), default=STUDY_DEFAULTS["window_start"],
                         help="how lerobot-train loads episodes: LeRobot's windows, or one row per episode from the "
                              "packed view (several times faster; README, the packed view)")
+
+
+def add_first_seed_argument(parser: argparse.ArgumentParser) -> None:
+    """`--first-seed` of the studies whose seeds may run in several invocations."""
+    parser.add_argument("--first-seed", type=int, default=1,
+                        help="seed to count from: `--first-seed 3 --seeds 2` runs seeds 3 and 4, so that the seeds "
+                             "of one study can run in several invocations (side by side or in turn) and add up "
+                             "(`ocn-reproduce combine` joins their results files)")
 
 
 def add_dart_noise_argument(parser: argparse.ArgumentParser) -> None:

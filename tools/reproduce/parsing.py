@@ -484,9 +484,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser(EXPERIMENT, help="parsing of S1 over training, OCN against OMPN, compILE and HIL "
                             "(figure 7)", description=__doc__, epilog=_EPILOG, formatter_class=_HelpFormatter)
     parser.add_argument("--seeds", type=int, default=3, help="seeds per method")
-    parser.add_argument("--first-seed", type=int, default=1,
-                        help="seed to count from, so that the seeds of one study can run in several invocations "
-                             "(joined by `ocn-reproduce combine`)")
+    imitation.add_first_seed_argument(parser)
     parser.add_argument("--methods", type=lambda s: s.split(","), default=",".join(m.key for m in METHODS),
                         help="comma-separated: " + ",".join(m.key for m in METHODS))
     parser.add_argument("--eval-every", type=int, default=500,
