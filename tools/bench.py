@@ -25,7 +25,11 @@ at once against one step at a time (`tools.ppo_speed`).
 
 `ocn-bench dial` measures Dial env steps per second, the env's physics rate against bare
 `mujoco.mj_step` on the same model and trajectory, and the expert's success over 200 two-digit
-PINs, noise-free and with the DART noise it records with. Results carry the machine they ran on.
+PINs, noise-free and with the DART noise it records with.
+
+`ocn-bench clonability` measures how much of the Dial expert's control a memoryless network predicts
+from the observation, with and without the digit (`tools.dial_clonability`). Results carry the
+machine they ran on.
 """
 
 from __future__ import annotations
@@ -282,6 +286,21 @@ def run_dial_bench(args: argparse.Namespace) -> None:
         "expert_reference_dart": bench_dial_expert(args.pins, REFERENCE_NOISE_LEVELS),
     }
     _write(result, Path(args.out), _dial_markdown(result))
+
+
+def run_clonability_bench(args: argparse.Namespace) -> None:
+    import torch
+
+    from tools import dial_clonability
+
+    torch.set_num_threads(args.threads)
+    result = {
+        "benchmark": "ocn-bench clonability",
+        "machine": machine(),
+        "note": args.note,
+        "clonability": dial_clonability.measure(args.episodes, args.fit_steps),
+    }
+    _write(result, Path(args.out), dial_clonability.markdown(result))
 
 
 def _levels(expert: dict) -> str:
@@ -743,6 +762,11 @@ def main(argv: list[str] | None = None) -> None:
                   "Dial env steps/s, its physics rate against bare mj_step, expert success")
     dial.add_argument("--steps", type=int, default=2000, help="env steps per timing")
     dial.add_argument("--pins", type=int, default=200, help="random two-digit PINs for the expert success rate")
+    clonability = _bench(sub, "clonability", run_clonability_bench,
+                         "how much of the Dial expert's control a memoryless MLP predicts, from what")
+    clonability.add_argument("--episodes", type=int, default=200, help="two-digit PINs recorded")
+    clonability.add_argument("--fit-steps", type=int, default=4000, help="Adam steps per fit")
+    clonability.add_argument("--threads", type=int, default=1, help="torch math threads")
     stacked = _bench(sub, "stacked", run_stacked_bench, "stacked option cells against a per-option loop, swept")
     stacked.add_argument("--options", type=_int_list, default=[3, 6],
                          help="options in the pool, e.g. 3,6 (the S1 policy's 3 and the paper's 6-option ablation)")
