@@ -75,3 +75,15 @@ def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path
     moved = max(float((_weights(settled / "checkpoints" / "last" / "pretrained_model")[k] - after[k]).abs().max())
                 for k in after)
     assert moved > 0
+
+    # An ablation added in a later session, whose workdir no longer holds the main runs' option tables,
+    # keeps the table those runs left in the results folder.
+    table = (tmp_path / "results" / "imitation_s1_option_table.png").read_bytes()
+    (run / "settle" / "eval.png").unlink()
+    ablation = _reproduce(tmp_path, "--settle-steps", "2", "--settle-termination-cost", "0.3", "--seeds", "0",
+                          "--ablation-seeds", "1", "--variants", "2options_T10")
+    assert ablation.returncode == 0, ablation.stderr[-2000:]
+    result = json.loads((tmp_path / "results" / "imitation_s1.json").read_text())
+    assert [r["variant"] for r in result["runs"]] == ["3 options, T=10", "2 options, T=10"]
+    assert result["option_table_seed"] == 1
+    assert (tmp_path / "results" / "imitation_s1_option_table.png").read_bytes() == table

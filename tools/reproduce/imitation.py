@@ -361,13 +361,17 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
     tables = [(seed, scored_dir(run_dir(args.workdir, VARIANTS[0], seed, study_overrides(args)), args) / "eval.png")
               for seed in main_seeds]
     table_seed, table = next(((seed, png) for seed, png in tables if png.exists()), (None, None))
+    option_table = args.results / "imitation_s1_option_table.png"
+    if table is None and main_seeds:
+        # The main runs are all earlier invocations' (whose workdir is gone): keep the table they left.
+        earlier = args.results / "imitation_s1.json"
+        table_seed = json.loads(earlier.read_text()).get("option_table_seed") if earlier.exists() else None
     result["option_table_seed"] = table_seed
     stem = write_result_files(args.results, "imitation_s1", result, markdown(result))
     plot(records, stem.with_suffix(".png"))
-    option_table = args.results / "imitation_s1_option_table.png"
     if table is not None:
         option_table.write_bytes(table.read_bytes())
-    else:
+    elif table_seed is None:
         option_table.unlink(missing_ok=True)  # rather than leave one of another study's runs
     return result
 
