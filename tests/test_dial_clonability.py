@@ -19,7 +19,7 @@ def test_explained_variance_is_high_for_a_function_of_the_input_and_low_for_nois
     assert r2[1] < 0.1  # fitted noise explains nothing held out (or less than nothing)
 
 
-def test_expert_frames_are_whole_episodes():
+def test_expert_frames_are_whole_episodes_and_the_expert_needs_no_velocity():
     frames = expert_frames(episodes=3, num_envs=2)
     n = len(frames["t"])
     assert frames["obs"].shape == (n, 39) and frames["action"].shape == (n, 9) and frames["qvel"].shape == (n, 9)
@@ -32,6 +32,16 @@ def test_expert_frames_are_whole_episodes():
     assert [x.shape[1] for x in inputs.values()] == [39, 43, 82, 52]
     change = inputs["observation + digit + last change"][:, 43:]
     assert not change[frames["t"] == 0].any() and change[frames["t"] > 0].any()
+    # The expert's control is a function of the observation and the digit: two frames of one digit
+    # with the same observation get the same control, whatever the velocities.
+    from envs.dial import DialBatch, DialExpert
+
+    batch = DialBatch(2)
+    batch.reset(seeds=[0, 0], tasks=["12", "12"])
+    expert = DialExpert(batch, (0.0,))
+    batch.data[1].qvel[:] = 0.5
+    batch.qvel[1] = 0.5
+    np.testing.assert_allclose(expert.act()[0], expert.act()[1])
 
 
 def test_ocn_bench_clonability_writes_every_input_row(tmp_path):

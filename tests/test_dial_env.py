@@ -18,6 +18,7 @@ from envs.dial import (
     DialBatch,
     DialEnv,
     DialVectorEnv,
+    RestDynamics,
     default_max_steps,
     dial_poses,
     key_positions,
@@ -30,7 +31,8 @@ from envs.dial import (
 
 def hold(batch: DialBatch) -> np.ndarray:
     """Controls that cancel gravity at the current pose, so a placed arm stays (nearly) put for a step."""
-    return np.clip(batch.bias / np.array(GEARS), -1.0, 1.0)
+    gravity = RestDynamics(batch.model)(batch.qpos)[1]
+    return np.clip(gravity / np.array(GEARS), -1.0, 1.0)
 
 
 def place_and_step(batch: DialBatch, qpos: np.ndarray):

@@ -120,17 +120,21 @@ def test_expert_targets_the_press_pose_over_the_key_and_the_hover_pose_away_from
 
 
 def test_expert_controls_change_smoothly():
-    """A policy must be able to imitate the expert: no control flips between the limits from one step
-    to the next (the PID it replaced flipped them every few steps)."""
+    """A policy must be able to imitate the expert: while it works on one digit, no control flips
+    between the limits from one step to the next (the PID it replaced flipped them every few steps).
+    When the next digit starts, the target jumps to its key, and the controls with it."""
     batch, _, _ = run(["12", "48", "81", "24"], (0.0,))
     assert (batch.t < 60).all()
     batch = DialBatch(4)
     batch.reset(seeds=[0, 1, 2, 3], tasks=["12", "48", "81", "24"])
     expert = DialExpert(batch, (0.0,))
     expert.reset(seeds=[0, 1, 2, 3])
-    controls = []
+    controls, digits = [], []
     while not batch.done.all():
         controls.append(expert.act())
+        digits.append(batch.current_digit())
         batch.step(controls[-1])
     steps = np.abs(np.diff(np.array(controls)[:40], axis=0))
-    assert steps.max() < 1.5 and steps.mean() < 0.15
+    same_digit = np.diff(np.array(digits)[:40], axis=0) == 0
+    assert steps[same_digit].max() < 1.0 and steps[same_digit].mean() < 0.1
+    assert steps.max() > 1.0  # the switch itself does jump, so leaving it out is what lets the check above pass

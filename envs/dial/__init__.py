@@ -6,7 +6,7 @@ JACO model that the `dm-control` package ships (see envs.dial.scene).
 
 from envs.dial.batch import CONTROL_DT, FRAME_SKIP, OBS_DIM, PRESS_L1, RELEASE_L1, DialBatch
 from envs.dial.env import FPS, DialEnv, DialVectorEnv, dial_action_space, dial_observation_space
-from envs.dial.expert import DialExpert
+from envs.dial.expert import DialExpert, RestDynamics
 from envs.dial.poses import DialPoses, dial_poses, solve_ik
 from envs.dial.scene import DIGIT_CELLS, GEARS, N_JOINTS, dial_model, key_positions
 from envs.dial.task import (
@@ -38,6 +38,7 @@ __all__ = [
     "DialExpert",
     "DialPoses",
     "DialVectorEnv",
+    "RestDynamics",
     "default_max_steps",
     "dial_action_space",
     "dial_model",

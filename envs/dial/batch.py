@@ -71,7 +71,6 @@ class DialBatch(EpisodeBatch):
         self._high = np.where(self.model.jnt_limited, self.model.jnt_range[:, 1], np.inf)
         self.qpos = np.zeros((n, N_JOINTS))
         self.qvel = np.zeros((n, N_JOINTS))
-        self.bias = np.zeros((n, N_JOINTS))
         self.tip = np.zeros((n, 3))
         self.armed = np.zeros((n, len(self.keys)), dtype=bool)
 
@@ -134,21 +133,12 @@ class DialBatch(EpisodeBatch):
         return self.tasks[self._arange, self.progress]
 
     def _sync(self, ids: np.ndarray) -> None:
-        """Copy the joint state, bias forces and fingertip of envs ``ids`` into the batch arrays."""
+        """Copy the joint state and fingertip of envs ``ids`` into the batch arrays."""
         for i in ids.tolist():
             data = self.data[i]
             self.qpos[i] = data.qpos
             self.qvel[i] = data.qvel
-            self.bias[i] = data.qfrc_bias
             self.tip[i] = data.site_xpos[self._site]
-
-    def mass_matrices(self) -> np.ndarray:
-        """Joint-space inertia M(q) of every env (n, 9, 9), as of the last physics step (like ``bias``);
-        computed on request, since only the expert needs it."""
-        mass = np.zeros((self.num_envs, N_JOINTS, N_JOINTS))
-        for i, data in enumerate(self.data):
-            mujoco.mj_fullM(self.model, data, mass[i])
-        return mass
 
     def _key_distance(self, ids: np.ndarray | slice = slice(None)) -> np.ndarray:
         """L1 distance from the fingertip to every key's press point, (len(ids), 10)."""

@@ -7,21 +7,30 @@ hover pose while d >= 2 `PRESS_BLEND`, the press pose once d <= `PRESS_BLEND`, l
 So the hand comes down over the key, not on its edge, and a new digit starts from wherever the last
 press left the hand.
 
-Control (computed torque): ``tau = M(q) (OMEGA^2 e - 2 DAMPING_RATIO OMEGA qdot) + bias`` on the arm,
-``tau = FINGER_KP e - FINGER_KD qdot + bias`` on the fingers (held closed), where ``e`` is the joint
-error, ``M`` the joint-space inertia and ``bias`` the simulator's gravity and Coriolis force; the
-control sent is ``tau / gear`` clipped to [-1, 1]. Every arm joint then closes on its target like a
-critically damped spring of OMEGA = 12 rad/s, OMEGA x 0.04 s = 0.48 per env step. The expert reads
-the simulator's joint velocities, inertia and bias forces, which the 39-float observation does not
-hold: it is privileged, as scripted experts are.
+Control (computed torque at rest): ``tau = M(q) OMEGA^2 e + g(q)`` on the arm, ``tau = FINGER_KP e + g(q)``
+on the fingers (held closed), where ``e`` is the joint error, ``M`` the joint-space inertia and ``g`` the
+gravity torque, both at the current pose (`RestDynamics`); the control sent is ``tau / gear`` clipped
+to [-1, 1]. The scene's joint damping (`envs.dial.scene.ARM_DAMPING`, about 2 OMEGA times each arm
+joint's inertia) brings the arm to rest, so every arm joint closes on its target like a spring of
+OMEGA = 12 rad/s, near critically damped, OMEGA x 0.04 s = 0.48 per env step.
 
-Why this controller, measured by behaviour cloning (`results/dial_expert/`): a policy has to be able
-to imitate it. The earlier expert, a PID with gains 20-40 times higher (its loop near the limit of
-stability at one control every 0.04 s, so its controls flipped between the limits) that switched
-from hover to press on a hidden event (the fingertip held still over the key), could not be cloned:
-a single option trained on one digit reached the hover point and stayed there, success 0. This one
-keeps no hidden state (no integral, no phase flag): its target is a function of the digit and of the
-fingertip's offset to the key, which the observation holds, and its controls change smoothly.
+Why no velocity feedback: the control is then a function of the 39-float observation and the digit
+alone, which is what an option sees and what the controller adds. The expert before this one damped
+the motion itself (``- 2 OMEGA M(q) qdot``, with Coriolis forces) from joint velocities that the
+observation does not hold; a memoryless network predicted 0.79 of its control's variance from the
+observation and the digit, and no more with the last step's change of the observation (0.77),
+against 0.98 with the velocities (`results/bench_clonability_velocity_pd.md`). A fifth of the
+control was noise to every option, and OCN's options did not split by digit on it
+(`results/dial_option_split_pd/`). This expert's control is 0.99 explained by the observation and
+the digit (`results/bench_clonability.md`).
+
+Why this kind of controller, measured by behaviour cloning (`results/dial_expert/`): the PID expert
+of the first Dial sessions, with gains 20-40 times higher (its loop near the limit of stability at
+one control every 0.04 s, so its controls flipped between the limits) that switched from hover to
+press on a hidden event (the fingertip held still over the key), could not be cloned: a single
+option trained on one digit reached the hover point and stayed there, success 0. A smooth
+controller without hidden state (no integral, no phase flag) can: its target is a function of the
+digit and of the fingertip's offset to the key, which the observation holds.
 
 DART noise (Laskey et al. 2017), for demonstrations that cover recoveries: each episode draws a
 noise level from `NOISE_LEVELS`; the executed control is the expert's plus Gaussian noise of that
@@ -36,6 +45,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import mujoco
 import numpy as np
 
 from envs.dial.batch import DialBatch
@@ -43,16 +53,39 @@ from envs.dial.poses import dial_poses
 from envs.dial.scene import GEARS, N_ARM_JOINTS, N_JOINTS
 
 OMEGA = 12.0
-DAMPING_RATIO = 1.0
 PRESS_BLEND = 0.04
 FINGER_KP = 5.0
-FINGER_KD = 0.5
 NOISE_LEVELS = (0.0, 0.1, 0.2)
 REFERENCE_NOISE_LEVELS = (0.0, 0.2, 0.3)
 NOISE_HOLD = (5, 30)
 
 _GEARS = np.array(GEARS)
 _FINGERS = slice(N_ARM_JOINTS, N_JOINTS)
+
+
+class RestDynamics:
+    """Joint-space inertia M(q) and gravity torque g(q) of the Dial scene at given poses, at rest.
+
+    Evaluated on a scratch ``MjData`` (pose set, velocities zero, ``mj_forward``), so the result
+    depends on the pose alone, never on the state of a simulated env.
+    """
+
+    def __init__(self, model: mujoco.MjModel):
+        self.model = model
+        self._data = mujoco.MjData(model)
+
+    def __call__(self, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(M (n, 9, 9), g (n, 9)) for the poses ``qpos`` (n, 9)."""
+        n, dof = qpos.shape
+        mass, gravity = np.zeros((n, dof, dof)), np.zeros((n, dof))
+        data = self._data
+        for i, pose in enumerate(qpos):
+            data.qpos[:] = pose
+            data.qvel[:] = 0.0
+            mujoco.mj_forward(self.model, data)
+            mujoco.mj_fullM(self.model, data, mass[i])
+            gravity[i] = data.qfrc_bias
+        return mass, gravity
 
 
 class DialExpert:
@@ -64,6 +97,7 @@ class DialExpert:
         n = batch.num_envs
         poses = dial_poses()
         self._hover, self._press = poses.hover, poses.press
+        self._rest = RestDynamics(batch.model)
         self.noise_level = np.zeros(n)
         self._noise = np.zeros((n, N_JOINTS))
         self._noise_left = np.zeros(n, dtype=np.int64)
@@ -96,9 +130,9 @@ class DialExpert:
         """Clean expert controls (n, 9) in [-1, 1] for the batch's current state."""
         b = self.batch
         error = self.targets() - b.qpos
-        acceleration = OMEGA**2 * error - 2.0 * DAMPING_RATIO * OMEGA * b.qvel
-        torque = np.einsum("nij,nj->ni", b.mass_matrices(), acceleration) + b.bias
-        torque[:, _FINGERS] = FINGER_KP * error[:, _FINGERS] - FINGER_KD * b.qvel[:, _FINGERS] + b.bias[:, _FINGERS]
+        mass, gravity = self._rest(b.qpos)
+        torque = np.einsum("nij,nj->ni", mass, OMEGA**2 * error) + gravity
+        torque[:, _FINGERS] = FINGER_KP * error[:, _FINGERS] + gravity[:, _FINGERS]
         return np.clip(torque / _GEARS, -1.0, 1.0)
 
     def perturb(self, controls: np.ndarray) -> np.ndarray:

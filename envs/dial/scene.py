@@ -43,9 +43,11 @@ JOINTS = ARM_JOINTS + FINGER_JOINTS
 N_JOINTS = len(JOINTS)
 N_ARM_JOINTS = len(ARM_JOINTS)
 GEARS = (50.0, 100.0, 100.0, 50.0, 50.0, 50.0, 10.0, 10.0, 10.0)
-# Viscous damping (N m s / rad) added to the arm joints: the bare model has almost none (0.01), so
-# a torque held for a whole env step would swing the arm freely between decisions.
-ARM_DAMPING = (20.0, 20.0, 20.0, 5.0, 5.0, 5.0)
+# Viscous damping (N m s / rad) on the arm joints, as heavy as a geared motor's: the bare model has
+# almost none (0.01). About 2 x 12 rad/s x each joint's inertia at the home pose (4.4, 4.5, 4.1, 2.0,
+# 2.0, 2.0 kg m^2), so the expert's spring of 12 rad/s stops near critically damped without velocity
+# feedback, which the observation could not explain (`envs.dial.expert`).
+ARM_DAMPING = (100.0, 100.0, 100.0, 50.0, 50.0, 50.0)
 FINGERTIP_OFFSET = (0.0, 0.0, -0.2)
 FINGERTIP_SITE = "fingertip"
 FINGERTIP_SENSOR = "fingertip_pos"
