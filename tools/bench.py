@@ -160,6 +160,11 @@ def run_env_bench(args: argparse.Namespace) -> None:
     _write(result, Path(args.out), _markdown(result))
 
 
+def conditions_paragraph(r: dict) -> str:
+    """A report's "Conditions:" paragraph from the run's `--note`, or nothing without one."""
+    return f"Conditions: {r['note']}\n\n" if r["note"] else ""
+
+
 def _write(result: dict, out: Path, markdown: str) -> None:
     """The JSON and its Markdown twin, and the Markdown on stdout."""
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -170,7 +175,7 @@ def _write(result: dict, out: Path, markdown: str) -> None:
 
 def _markdown(r: dict) -> str:
     m, s, rec, mc = r["machine"], r["env_steps"], r["record_demos"], r["record_demos_with_mcap"]
-    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    conditions = conditions_paragraph(r)
     return (
         "# Craft env and recording throughput\n\n"
         f"Command: `ocn-bench env`. Machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}.\n\n"
@@ -309,7 +314,7 @@ def _levels(expert: dict) -> str:
 
 def _dial_markdown(r: dict) -> str:
     m, e = r["machine"], r["env"]
-    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    conditions = conditions_paragraph(r)
     rows = "".join(
         f"| expert success, {x['pins']} random two-digit PINs from 1, 2, 4, 8, {name} | **{x['success']:.3f}** "
         f"(median {x['steps_median']:.0f} steps, p99 {x['steps_p99']:.0f}, max {x['steps_max']} of {x['step_limit']}) |\n"
@@ -537,7 +542,7 @@ def _train_markdown(r: dict) -> str:
     view, getitem, getitem_view = r["lerobot_train_view"], r["getitem_s_per_window"], r["getitem_view_s_per_window"]
     packed, getitem_packed = r["lerobot_train_packed"], r["getitem_packed_s_per_row"]
     threaded = r["lerobot_train_packed_threads"]
-    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    conditions = conditions_paragraph(r)
     updates = "".join(
         f"| the same update alone on real S1 episodes, {u['threads']} thread(s) | "
         f"{u['real_frames_per_s']:,.0f} real frames/s ({u['padded_frames_per_s']:,.0f} with padding) |\n"
@@ -605,7 +610,7 @@ def overhead_bound(n_options: int) -> float:
 
 def _stacked_markdown(r: dict) -> str:
     m = r["machine"]
-    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    conditions = conditions_paragraph(r)
     rows = "".join(
         f"| {row['n_options']} | {row['batch_size']} | {row['threads']} | {row['stacked_frames_per_s']:,.0f} | "
         f"{row['loop_frames_per_s']:,.0f} | **{row['speedup']:.2f}x** | {row['overhead_bound']:.2f}x |\n"
@@ -688,7 +693,7 @@ def run_ppo_bench(args: argparse.Namespace) -> None:
 
 def _ppo_markdown(r: dict) -> str:
     m = r["machine"]
-    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    conditions = conditions_paragraph(r)
     what = {"flat": "flat pool (a decision every step, as flat PPO and MoE)",
             "ocn": "random 4-option OCN (decisions where terminations fire)"}
     rows = []

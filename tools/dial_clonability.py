@@ -18,6 +18,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from tools.bench import conditions_paragraph
+
 DIGITS = (1, 2, 4, 8)
 HIDDEN = 256
 BATCH = 256
@@ -118,7 +120,7 @@ def measure(episodes: int, steps: int, progress: Callable = tqdm) -> dict:
 def markdown(r: dict) -> str:
     """The results table of `ocn-bench clonability`."""
     m, c = r["machine"], r["clonability"]
-    conditions = f"Conditions: {r['note']}\n\n" if r["note"] else ""
+    conditions = conditions_paragraph(r)
     rows = "".join(
         f"| {name} | **{s['mean']:.3f}** | {' / '.join(f'{v:.3f}' for v in s['per_joint'][:6])} | "
         f"{' / '.join(f'{v:.3f}' for v in s['per_joint'][6:])} |\n"
