@@ -2,6 +2,7 @@
 under an oracle controller."""
 
 import numpy as np
+import pytest
 import torch
 
 from envs.craft.batch import CraftBatch
@@ -111,6 +112,40 @@ def test_the_oracle_decides_only_where_the_running_option_terminates():
     assert success == {"AC": 0.0}
     assert all(option == [1, 1, 1] for option, _ in calls)
     assert calls[0][1] == [True] * 3 and not any(any(restart) for _, restart in calls[1:])
+
+
+def test_the_progress_oracle_switches_where_the_subtask_completes_whatever_the_terminations_say():
+    """Options that `use` at every step and never terminate: under switch="progress" the oracle still
+    starts C's option (1) right after the step that got the wood, and only there; a bad switch name
+    is refused."""
+    episodes = 64
+    policy = make_policy()
+    set_option_behaviour(policy, action=USE, end_logit=-50.0)
+    calls = recorded_options(policy)
+    wood, iron = CRAFT_SUBTASK_IDS["A"], CRAFT_SUBTASK_IDS["C"]
+    oracle_controller_success(policy, identity, identity, CRAFT, ["AC"], {wood: 0, iron: 1}, episodes=episodes,
+                              switch="progress")
+    craft = CraftBatch(episodes, mode="paper")
+    craft.reset(seeds=range(episodes), tasks=["AC"] * episodes)
+    craft.step(np.full(episodes, USE))
+    got_wood = craft.progress == 1
+    assert 0 < got_wood.sum() < episodes
+    assert len(calls) > 3  # one acting call per step: the terminations are not consulted
+    assert calls[1] == (np.where(got_wood, 1, 0).tolist(), got_wood.tolist())
+    assert not any(any(restart) for _, restart in calls[2:])  # nobody can use iron (C) from the wood's cell
+    with pytest.raises(ValueError, match="switch must be one of"):
+        oracle_controller_success(policy, identity, identity, CRAFT, ["AC"], {wood: 0, iron: 1}, episodes=1,
+                                  switch="always")
+
+
+def test_the_progress_oracle_restarts_fixed_length_options_every_skill_length():
+    policy = make_policy(hierarchy="hil", skill_length=3)
+    set_option_behaviour(policy, action=0, end_logit=50.0)  # "down" forever completes nothing
+    calls = recorded_options(policy)
+    wood, iron = CRAFT_SUBTASK_IDS["A"], CRAFT_SUBTASK_IDS["C"]
+    assert oracle_controller_success(policy, identity, identity, CRAFT, ["AC"], {wood: 0, iron: 1}, episodes=2,
+                                     switch="progress") == {"AC": 0.0}
+    assert [restart for _, restart in calls] == [[t % 3 == 0] * 2 for t in range(len(calls))]
 
 
 def test_the_oracle_starts_the_option_of_the_current_subtask_at_each_termination():

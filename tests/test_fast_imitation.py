@@ -11,7 +11,15 @@ from conftest import CRAFT_REPO_ID, DIAL_REPO_ID
 from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.episodes_table import load_episodes, split_episodes
 from tools.episode_parsing import load_policy, score_segmentations, segment_episodes
-from tools.fast_imitation import episode_batch, episode_draws, main, parse_overrides, peak_table, split_table
+from tools.fast_imitation import (
+    episode_batch,
+    episode_draws,
+    main,
+    option_labels,
+    parse_overrides,
+    peak_table,
+    split_table,
+)
 
 
 def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
@@ -55,6 +63,49 @@ def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
     png = tmp_path / "curves.png"
     assert main(["plot", str(out), "--png", str(png)]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_supervised_options_train_on_the_labelled_split_and_are_scored_as_usual(craft_dataset, tmp_path, monkeypatch):
+    """--supervise-options trains the split given by the subtask labels (OCNPolicy.labelled_forward),
+    each subtask id its own option, and scores the model like any other run."""
+    from policies.ocn import OCNPolicy
+
+    split = load_episodes(craft_dataset, split_episodes(craft_dataset, "train"))
+    ids = np.unique(split.subtask_id[split.mask])
+    rows = np.array([0, 3])
+    labels = option_labels(split, rows, ids, width=12)
+    assert labels.shape == (2, min(12, int(split.lengths[rows].max())))
+    for row, episode in enumerate(rows):
+        n = min(12, int(split.lengths[episode]))
+        expected = [int(np.flatnonzero(ids == i)[0]) for i in split.subtask_id[episode, :n]]
+        assert labels[row, :n].tolist() == expected and (labels[row, n:] == -1).all()
+
+    seen = []
+    labelled = OCNPolicy.labelled_forward
+
+    def recording(self, batch, option, termination_weight):
+        seen.append((batch[OBS_STATE].shape[:2], option.clone(), termination_weight))
+        return labelled(self, batch, option, termination_weight)
+
+    monkeypatch.setattr(OCNPolicy, "labelled_forward", recording)
+    out = tmp_path / "supervised.json"
+    argv = ["train", "--root", str(craft_dataset), "--repo-id", CRAFT_REPO_ID, "--out", str(out), "--steps", "2",
+            "--batch-size", "4", "--eval-every", "2", "--window-size", "30", "--supervise-options",
+            "--termination-weight", "5", "--set", "hidden_size=16", "mlp_hidden_size=16"]
+    assert main(argv) == 0
+    assert len(seen) == 2
+    for shape, option, weight in seen:
+        assert option.shape == shape and set(option.unique().tolist()) <= {-1, *range(len(ids))} and weight == 5.0
+    result = json.loads(out.read_text())
+    assert result["settings"]["supervise_options"] is True and result["settings"]["termination_weight"] == 5.0
+    point = result["curve"][-1]
+    assert point["choice_ce"] > 0 and point["termination_bce"] > 0 and point["val_nll"] > 0
+    assert 0 < point["mean_end_at_switch"] < 1 and 0 < point["mean_end_elsewhere"] < 1
+    assert "usage_imbalance" not in point and 0 <= point["nmi"] <= 1
+    with pytest.raises(SystemExit, match="its own option; n_options is 1"):
+        main([*argv[:-3], "--set", "n_options=1"])
+    with pytest.raises(SystemExit, match="needs --supervise-options"):
+        main([arg for arg in argv if arg != "--supervise-options"])
 
 
 def test_fast_imitation_overrides_are_typed_config_fields():

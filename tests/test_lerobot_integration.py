@@ -162,9 +162,14 @@ def test_ocn_eval_scores_a_hil_checkpoint(trained, tmp_path):
                      "--rollouts", "2"]) == 0
     result = json.loads(out.read_text())
     assert 0.0 <= result["f1_tol0"] <= result["f1_tol1"] <= 1.0 and list(result["success_rate"]) == [AC]
-    # HIL's options have no termination of their own for the oracle to decide at
-    assert ocn_eval(["--policy", str(tmp_path / "hil"), "--root", str(root), "--repo-id", REPO_ID,
-                     "--out", str(tmp_path / "oracle.json"), "--oracle-tasks", "CA"]) == 2
+    # HIL's options have no termination of their own for the oracle to decide at, but it can switch
+    # where the env's subtask completes.
+    oracle_args = ["--policy", str(tmp_path / "hil"), "--root", str(root), "--repo-id", REPO_ID,
+                   "--out", str(tmp_path / "oracle.json"), "--oracle-tasks", "CA", "--rollouts", "2"]
+    assert ocn_eval(oracle_args) == 2
+    assert ocn_eval([*oracle_args, "--oracle-switch", "progress"]) == 0
+    oracle = json.loads((tmp_path / "oracle.json").read_text())["oracle_controller"]
+    assert oracle["switch"] == "progress" and list(oracle["success_rate"]) == ["CA"]
 
 
 def test_lerobot_eval_counts_the_episode(trained):

@@ -422,6 +422,92 @@ def test_soft_step_mixes_both_branches_by_eq_17():
     torch.testing.assert_close(got, p_a.log())
 
 
+def test_teacher_forcing_steps_the_controller_and_restarts_options_only_where_a_choice_is_given():
+    policy = make_policy()
+    core = policy.core
+    option = torch.tensor([[0, 2], [0, 1], [1, 1]])  # [T, B]
+    decided = torch.tensor([[True, True], [False, True], [True, False]])
+    x = torch.randn(3, 2, STATE_DIM)
+    state = core.initial_state(torch.tensor([0, 1]))
+
+    def run(inputs):
+        return core.teacher_forced(core.project(inputs), state, option, decided)
+
+    out = run(x)
+    assert out.controller_logits.shape == (3, 2, N_OPTIONS) and out.end.shape == (3, 2)
+    # t = 0: the task's controller state chooses and the given option starts from h^o_0.
+    first_logits, after_first = core.decide(core.project(x[0]).controller, state.controller_h)
+    torch.testing.assert_close(out.controller_logits[0], first_logits)
+    restarted = core.options(x[0], core.option_init.unsqueeze(1).expand(-1, 2, -1))
+    torch.testing.assert_close(out.params[0], restarted.logits[option[0], torch.arange(2)])
+    # t = 1, row 0 continues option 0 from its state and reports option 0's termination; row 1 restarts option 1.
+    continued = core.options(x[1], restarted.hidden)
+    torch.testing.assert_close(out.params[1, 0], continued.logits[0, 0])
+    torch.testing.assert_close(out.end[1, 0], continued.end[0, 0])
+    torch.testing.assert_close(out.end[1, 1], continued.end[2, 1])  # row 1 ran option 2 before
+    fresh = core.options(x[1], core.option_init.unsqueeze(1).expand(-1, 2, -1))
+    torch.testing.assert_close(out.params[1, 1], fresh.logits[1, 1])
+    # t = 2, row 0 decides from the controller state of its last decision (t = 0): t = 1 did not step it.
+    logits, _ = core.decide(core.project(x[2]).controller, after_first)
+    torch.testing.assert_close(out.controller_logits[2, 0], logits[0])
+    # So what row 0 saw at t = 1 reaches neither its choice nor its restarted option at t = 2.
+    changed = x.clone()
+    changed[1, 0] += 1.0
+    again = run(changed)
+    torch.testing.assert_close(again.controller_logits[2, 0], out.controller_logits[2, 0])
+    torch.testing.assert_close(again.params[2, 0], out.params[2, 0])
+    assert not torch.allclose(again.params[1, 0], out.params[1, 0])
+    # Options of a fixed length have no terminations to teach.
+    with pytest.raises(ValueError, match="fixed length"):
+        make_policy(hierarchy="moe").core.teacher_forced(core.project(x), state, option, decided)
+
+
+def test_labelled_loss_is_the_given_options_nll_plus_the_choice_and_termination_cross_entropies():
+    # Labels that change at every frame: each frame restarts its option and the controller chooses at
+    # each, which is what the soft recurrence does where every termination fires (e_t = 1).
+    policy = make_policy(temperature=1.0)
+    force_termination(policy, 1e4)
+    batch = make_batch(batch=3, steps=4)
+    labels = torch.tensor([[0, 1, 0, 2], [2, 0, 1, 0], [1, 2, -1, -1]])
+    batch[f"{ACTION}_is_pad"][2, 2:] = True
+    loss, stats = policy.labelled_forward(batch, labels)
+    real = labels >= 0
+    with torch.no_grad():
+        soft = policy._unroll(batch[OBS_STATE], batch["task"])
+        initial = policy.core.option_init.unsqueeze(1).expand(-1, 3, -1)
+        restarted = torch.stack([policy.core.options(x, initial).logits for x in batch[OBS_STATE].unbind(1)])
+    index = labels.clamp_min(0).T
+    p_c = soft.p_c.gather(-1, index[..., None]).squeeze(-1)
+    params = restarted.gather(1, index[:, None, :, None].expand(-1, 1, -1, restarted.shape[-1]))
+    log_prob = policy.head.log_prob(params, batch[ACTION].transpose(0, 1)).squeeze(1)
+    assert stats["frames_used"] == 10
+    assert stats["nll"] == pytest.approx(-log_prob.T[real].mean().item(), rel=1e-5)
+    assert stats["choice_ce"] == pytest.approx(-p_c.T[real].log().mean().item(), rel=1e-5)
+    assert stats["termination_bce"] == pytest.approx(0.0, abs=1e-6) and stats["mean_end"] == 1.0
+    assert stats["mean_end_at_switch"] == 1.0
+    assert loss.item() == pytest.approx(stats["nll"] + stats["choice_ce"] + stats["termination_bce"], rel=1e-5)
+
+
+def test_labelled_loss_trains_the_controller_its_task_states_every_labelled_option_and_the_terminations():
+    policy = make_policy()
+    labels = torch.tensor([[0, 0, 1, 1, 1], [2, 2, 2, 0, 0], [1, 1, 0, 0, 0], [2, 1, 1, 1, 1]])
+    loss, stats = policy.labelled_forward(make_batch(batch=4, steps=5), labels)
+    weighted, _ = policy.labelled_forward(make_batch(batch=4, steps=5), labels, termination_weight=3.0)
+    assert weighted.item() == pytest.approx(loss.item() + 2.0 * stats["termination_bce"], rel=1e-5)
+    loss.backward()
+    core = policy.core
+    assert 0 < stats["mean_end"] < 1 and stats["termination_bce"] > 0
+    # Four switches among the 16 frames after the first: the mean over all is their weighted mean.
+    mixed = (4 * stats["mean_end_at_switch"] + 12 * stats["mean_end_elsewhere"]) / 16
+    assert stats["mean_end"] == pytest.approx(mixed, rel=1e-5)
+    for name, param in core.controller.named_parameters():
+        assert param.grad.abs().sum() > 0, name
+    assert (core.controller_init.grad.abs().sum(1) > 0).all()
+    assert (core.options.w_out.grad.flatten(1).abs().sum(1) > 0).all()
+    assert (core.options.w_out.grad[..., -1].abs().sum(1) > 0).all()
+    assert (core.option_init.grad.abs().sum(1) > 0).all()
+
+
 # ---- loss, masks, windows ------------------------------------------------------------------------
 
 

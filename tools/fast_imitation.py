@@ -27,6 +27,10 @@ import torch
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 CURVE_METRICS = ("nmi", "f1_tol1", "align_acc")
+# The last training batch's statistics kept at each evaluation (--supervise-options: no usage
+# imbalance, and the controller's and terminations' supervised losses).
+TRAINING_STATS = ("nll", "mean_end", "usage_imbalance", "choice_ce", "termination_bce", "mean_end_at_switch",
+                  "mean_end_elsewhere")
 # Curve metrics that are fractions, drawn on a 0-1 axis (the others, such as nll, on their own range).
 FRACTIONS = {"nmi", "f1_tol0", "f1_tol1", "align_acc", "mean_success_rate", "mean_end"}
 
@@ -72,6 +76,14 @@ def episode_batch(split: Any, rows: np.ndarray, width: int | None = None) -> dic
             "task": [split.tasks[i] for i in rows.tolist()]}
 
 
+def option_labels(split: Any, rows: np.ndarray, subtask_ids: np.ndarray, width: int | None = None) -> torch.Tensor:
+    """Each frame's option under `--supervise-options` [B, T], cut as `episode_batch` cuts: the rank of
+    its ground-truth subtask id among `subtask_ids` (the training split's, sorted), -1 on padding."""
+    used = min(int(split.lengths[rows].max()), width or split.state.shape[1])
+    ids, mask = split.subtask_id[rows, :used], split.mask[rows, :used]
+    return torch.from_numpy(np.where(mask, np.searchsorted(subtask_ids, ids), -1))
+
+
 def episode_draws(lengths: np.ndarray, batch_size: int, sampler: str, rng: np.random.Generator) -> Iterator[np.ndarray]:
     """Rows of the episodes of each batch, each episode drawn in proportion to its length.
 
@@ -98,10 +110,12 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     from lerobot.policies.factory import make_policy, make_pre_post_processors
     from ocn_data.episodes_table import load_episodes, split_episodes
     from policies.ocn import OCNConfig, OCNPolicy
-    from tools.episode_parsing import parse_statistics, score_segmentations, segment_episodes
+    from tools.episode_parsing import action_nll, parse_statistics, score_segmentations, segment_episodes
     from tools.rollouts import free_run_success
     from tools.worlds import world_of
 
+    if args.termination_weight != 1.0 and not args.supervise_options:
+        raise SystemExit("--termination-weight weighs the supervised terminations' loss; it needs --supervise-options.")
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     torch.set_num_threads(args.threads)
@@ -124,15 +138,26 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     val_split = load_episodes(args.root, split_episodes(args.root, "val"), max_episodes=args.val_episodes)
     draw = episode_draws(np.minimum(train_split.lengths, config.window_size), args.batch_size, args.sampler, rng)
     tasks = [world.task_key(task) for task in sorted(set(val_split.tasks), key=config.tasks.index)]
+    subtask_ids = np.unique(train_split.subtask_id[train_split.mask])
+    if args.supervise_options and len(subtask_ids) > config.n_options:
+        raise SystemExit(f"--supervise-options gives each of the {len(subtask_ids)} subtasks its own option; "
+                         f"n_options is {config.n_options}.")
     curve: list[dict[str, Any]] = []
     result = {"command": "python -m tools.fast_imitation " + " ".join(args.argv), "world": world.name,
               "settings": dataclasses.asdict(config) | {"seed": args.seed, "batch_size": args.batch_size,
-                                                        "steps": args.steps, "sampler": args.sampler}, "curve": curve}
+                                                        "steps": args.steps, "sampler": args.sampler,
+                                                        "supervise_options": args.supervise_options,
+                                                        "termination_weight": args.termination_weight}, "curve": curve}
     started, frames = time.perf_counter(), 0
     for step in range(1, args.steps + 1):
-        batch = preprocessor(episode_batch(train_split, next(draw), config.window_size))
+        rows = next(draw)
+        batch = preprocessor(episode_batch(train_split, rows, config.window_size))
         policy.train()
-        loss, stats = policy.forward(batch)
+        if args.supervise_options:
+            labels = option_labels(train_split, rows, subtask_ids, config.window_size)
+            loss, stats = policy.labelled_forward(batch, labels, args.termination_weight)
+        else:
+            loss, stats = policy.forward(batch)
         optimizer.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), config.optimizer_grad_clip_norm)
@@ -145,8 +170,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             parses = segment_episodes(policy, preprocessor, val_split)
             shape = parse_statistics(val_split, parses)
             point = {"step": step, "lr": optimizer.param_groups[0]["lr"],
-                     **{key: stats[key] for key in ("nll", "mean_end", "usage_imbalance")},
-                     **score_segmentations(val_split, parses),
+                     **{key: stats[key] for key in TRAINING_STATS if key in stats},
+                     "val_nll": action_nll(parses), **score_segmentations(val_split, parses),
                      "option_share": shape.get("label_share"), "option_by_subtask": shape.get("label_by_subtask"),
                      "option_by_subtask_third": shape.get("label_by_subtask_third"),
                      "boundary_offsets": shape["boundary_offsets"],
@@ -263,6 +288,13 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--save", type=Path, default=None,
                      help="also save the policy here as a pretrained_model folder (for ocn-eval, ocn-view) at every "
                           "evaluation, so the folder holds the latest one")
+    run.add_argument("--supervise-options", action="store_true",
+                     help="give the split instead of inducing it: each frame's option is its ground-truth subtask's "
+                          "(one option per subtask of the training split), the controller learns the labelled choice "
+                          "at each switch and the options' terminations the switches (OCNPolicy.labelled_forward); "
+                          "evaluation runs the model as usual. What the model can do once the split is found")
+    run.add_argument("--termination-weight", type=float, default=1.0,
+                     help="with --supervise-options: the weight of the terminations' cross-entropy in the loss")
     run.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                      help="OCNConfig fields, over the world's imitation settings (Craft: n_options=3, "
                           "temperature=10.0; Dial: those of ocn-reproduce dial) or over --init's config")

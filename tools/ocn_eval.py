@@ -50,6 +50,10 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
                         help="also measure the frozen options on these tasks (e.g. ADC,CAD,DCA or 124,481) under an "
                              "oracle controller that starts, at every decision, the option with the best option x "
                              "subtask success on the current subtask: the ceiling of finetuning over these options")
+    parser.add_argument("--oracle-switch", choices=("termination", "progress"), default="termination",
+                        help="where --oracle-tasks' oracle chooses: where the running option's termination fires, or "
+                             "where the env's subtask completes (the options' terminations left out: how well each "
+                             "option carries out its subtask)")
     parser.add_argument("--boundary-threshold", type=float, default=None,
                         help="an ompn checkpoint's count-free read-out: one boundary per run of steps whose scaled "
                              "expected expansion height exceeds this value in (0, 1) (default: its checkpoint's "
@@ -110,7 +114,8 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     if args.oracle_tasks is not None:
         if not has_options:
             raise ValueError(f"--oracle-tasks runs frozen options; `{policy.name}` has none.")
-        rollouts.check_self_terminating(policy)  # now, not after the parse and the free runs
+        if args.oracle_switch == "termination":
+            rollouts.check_self_terminating(policy)  # now, not after the parse and the free runs
         oracle_tasks = world.parse_task_list(args.oracle_tasks)
     torch.manual_seed(args.seed)  # the policy samples its actions: same seed, same rollouts
     started = time.perf_counter()
@@ -168,6 +173,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         oracle = rollouts.oracle_report(
             policy, preprocessor, postprocessor, world.rollouts(), [world.task_code(task) for task in oracle_tasks],
             option_table["subtasks"], np.asarray(option_table["table"]), world.subtask_codes, args.rollouts, args.seed,
+            args.oracle_switch,
         )
     return {
         **scores,

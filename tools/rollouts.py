@@ -177,6 +177,10 @@ def check_self_terminating(policy: OCNPolicy) -> None:
                          f"`hierarchy={policy.config.hierarchy}` options have none.")
 
 
+# Where the oracle controller chooses: where the running option terminates, or where the env's subtask completes.
+ORACLE_SWITCHES = ("termination", "progress")
+
+
 @torch.no_grad()
 def oracle_controller_success(
     policy: OCNPolicy,
@@ -187,14 +191,21 @@ def oracle_controller_success(
     option_of_subtask: dict[int, int],
     episodes: int,
     seed: int = 0,
+    switch: str = "termination",
 ) -> dict[str, float]:
     """Success rate per task (keyed as given) of the frozen options under an oracle controller: at the
     first step and wherever the running option's termination fires (sampled, as in hard execution
     and PPO; e > 0.5 under greedy inference), it starts `option_of_subtask[s]` for the task's current
     subtask id s. No controller trained over these options decides better at those points, so this
     is the ceiling of finetuning them (paper 3.3): it tells options too weak to chain apart from a
-    controller that has not learnt yet."""
-    check_self_terminating(policy)
+    controller that has not learnt yet. `switch="progress"` takes the options' terminations out too:
+    the oracle then switches where the env's subtask completes, which measures how well each option
+    carries out its subtask alone; options of a fixed length L (MoE, HIL) then also restart every L
+    steps, as they run when the controller picks them at every decision."""
+    if switch not in ORACLE_SWITCHES:
+        raise ValueError(f"switch must be one of {ORACLE_SWITCHES}, got {switch!r}.")
+    if switch == "termination":
+        check_self_terminating(policy)
     greedy = policy.config.inference_mode == "greedy"
     rows, seeds = _episodes_of(tasks, episodes, seed)
     named = [world.policy_task(task) for task in rows]
@@ -206,15 +217,20 @@ def oracle_controller_success(
     env_rows = np.arange(len(rows))
     option, option_h = torch.zeros(len(rows), dtype=torch.long), None
     decide = torch.ones(len(rows), dtype=torch.bool)
+    length, step = policy.config.fixed_skill_length, 0
     while not batch.done.all():
         state = policy_inputs(obs, named, preprocessor)[OBS_STATE]
-        if option_h is not None:
+        if option_h is not None and switch == "progress":
+            decide = torch.from_numpy(batch.progress != progress) | (length is not None and step % length == 0)
+        elif option_h is not None:
             _, _, end = policy.act_with_options(state, option, option_h, torch.zeros_like(decide), greedy)
             decide = end > 0.5 if greedy else torch.bernoulli(end).bool()
+        progress = batch.progress.copy()
         current = batch.tasks[env_rows, np.minimum(batch.progress, batch.task_len - 1)]
         option = torch.where(decide, lookup[torch.from_numpy(current)], option)
         action, option_h, _ = policy.act_with_options(state, option, option_h, decide, greedy)
         obs, _ = step_envs(world, batch, postprocessor(action))
+        step += 1
     success = (batch.progress == batch.task_len).reshape(len(tasks), episodes)
     return {task: float(success[k].mean()) for k, task in enumerate(tasks)}
 
@@ -230,15 +246,16 @@ def oracle_report(
     subtask_codes: Sequence[str],
     episodes: int,
     seed: int = 0,
+    switch: str = "termination",
 ) -> dict[str, Any]:
-    """`oracle_controller_success` on `tasks` (codes), each subtask given the option that completes it
-    most often in the option x subtask `table` [options, columns] (ties: the lower index), with that
-    assignment and the mean."""
+    """`oracle_controller_success` on `tasks` (codes), switching as `switch` says, each subtask given the
+    option that completes it most often in the option x subtask `table` [options, columns] (ties: the
+    lower index), with that assignment and the mean."""
     best = {code: int(table[:, j].argmax()) for j, code in enumerate(columns)}
     success = oracle_controller_success(
         policy, preprocessor, postprocessor, world, list(tasks),
-        {list(subtask_codes).index(code): option for code, option in best.items()}, episodes, seed,
+        {list(subtask_codes).index(code): option for code, option in best.items()}, episodes, seed, switch,
     )
-    return {"option_of_subtask": best, "success_rate": success,
+    return {"switch": switch, "option_of_subtask": best, "success_rate": success,
             "mean_success_rate": float(np.mean(list(success.values())))}
 

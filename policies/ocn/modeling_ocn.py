@@ -178,6 +178,37 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             loss = loss + self.config.expected_nll_weight * expected
         return loss, stats
 
+    def labelled_forward(
+        self, batch: dict[str, Any], option: Tensor, termination_weight: float = 1.0
+    ) -> tuple[Tensor, dict[str, float]]:
+        """The loss with the split given instead of induced (`OCNCore.teacher_forced`): each frame's NLL
+        under its labelled option, the controller's cross-entropy at each labelled switch, and the
+        running option's termination as a binary cross-entropy at every later frame (target 1 where the
+        label changes), weighted by `termination_weight`. Each term is a mean over its frames. `batch`
+        holds whole episodes from their first frame, as `parse` takes them; `option` [B, T] is each
+        frame's option index, -1 on padding. The stats include the mean termination at the switches and
+        at the other frames, which tell terminations that fire where they should from a mean that only
+        matches the switches' rate."""
+        mask = option >= 0
+        used = int(mask.sum(1).max())
+        mask, option = mask[:, :used].transpose(0, 1), option[:, :used].clamp_min(0).transpose(0, 1)
+        decided = torch.ones_like(mask)
+        decided[1:] = option[1:] != option[:-1]
+        state = batch[OBS_STATE][:, :used]
+        action = batch[ACTION][:, :used].reshape(state.shape[0], used, self.config.action_dim)
+        task_index = self.task_index(batch["task"], state.shape[0])
+        projected = self.core.project(self.encoder(state.transpose(0, 1).contiguous()))
+        out = self.core.teacher_forced(projected, self.core.initial_state(task_index), option, decided)
+        nll = -self.head.log_prob(out.params.unsqueeze(1), action.transpose(0, 1)).squeeze(1)[mask].mean()
+        choice = torch.nn.functional.cross_entropy(out.controller_logits[mask & decided], option[mask & decided])
+        later = mask.clone()
+        later[0] = False
+        termination = torch.nn.functional.binary_cross_entropy(out.end[later], decided[later].to(out.end.dtype))
+        stats = {"nll": nll.item(), "choice_ce": choice.item(), "termination_bce": termination.item(),
+                 "mean_end": out.end[later].mean().item(), "mean_end_at_switch": out.end[later & decided].mean().item(),
+                 "mean_end_elsewhere": out.end[later & ~decided].mean().item(), "frames_used": int(mask.sum())}
+        return nll + choice + termination_weight * termination, stats
+
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:
         """Per-step hierarchy of whole episodes (each row starts at its episode's first frame).

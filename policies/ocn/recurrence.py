@@ -71,6 +71,16 @@ class HardStepOutput(NamedTuple):
     end: Tensor
 
 
+class TeacherForced(NamedTuple):
+    """Time-major outputs of `OCNCore.teacher_forced`: the controller's tempered logits [T, B, N] (its
+    choice where a decision falls), the given option's output head [T, B, n_params], and `end` [T, B],
+    e_{i,t} of the option given at t - 1 (meaningless at t = 0, where no option ran before)."""
+
+    controller_logits: Tensor
+    params: Tensor
+    end: Tensor
+
+
 def scatter_frames(rows: Tensor, real: Tensor) -> Tensor:
     """Per-module rows [N, R, d] of the R frames where `real` [T, B] holds, as [T, N, B, d] with zeros elsewhere."""
     out = rows.new_zeros(*real.shape, rows.shape[0], rows.shape[-1])
@@ -278,6 +288,31 @@ class OCNCore(nn.Module):
         weights = torch.cat([(1.0 - gate) * state.p_c, gate * new_p_c], dim=-1)
         params = torch.cat([continued.logits, restarted.logits], dim=0)
         return next_state, StepOutput(weights, params, next_state.p_c, end, option_end)
+
+    def teacher_forced(self, projected: Projected, state: OCNState, option: Tensor, decided: Tensor) -> TeacherForced:
+        """Run the hierarchy with its choices given: `option` [T, B] runs at each step and `decided`
+        [T, B] marks the steps where it was chosen (True at t = 0). There the controller steps and the
+        option restarts from h^o_0; elsewhere the controller keeps its state and the option continues.
+        This is eq. 17 with e_t and p^c set to one-hot ground truth, for training on labelled segments
+        (`tools.fast_imitation --supervise-options`: what the model can do when the split is given)."""
+        if self.skill_length is not None:
+            raise ValueError("Teacher forcing gives the options' terminations; options of a fixed length have none.")
+        rows = torch.arange(option.shape[1], device=option.device)
+        controller_h, option_h, previous = state.controller_h, state.option_h, option[0]
+        steps = zip(projected.controller.unbind(0), projected.options.unbind(0), option.unbind(0), decided.unbind(0),
+                    strict=True)
+        outputs = []
+        for x_controller, x_options, current, decide in steps:
+            logits, stepped_h = self.decide(x_controller, controller_h)
+            controller_h = torch.where(decide[:, None], stepped_h, controller_h)
+            restarted = self.options.step(x_options, self.option_init.unsqueeze(1))
+            continued = self._continued(x_options, option_h, restarted)
+            gate = decide[None, :, None]
+            params = torch.where(gate, restarted.logits, continued.logits)[current, rows]
+            option_h = torch.where(gate, restarted.hidden, continued.hidden)
+            outputs.append((logits, params, continued.end[previous, rows]))
+            previous = current
+        return TeacherForced(*(torch.stack(field) for field in zip(*outputs, strict=True)))
 
     def project_frames(self, x: Tensor, real: Tensor) -> Projected:
         """`project` of the real frames only (`real` [T, B]) of time-major x [T, B, obs_dim], zeros
