@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from envs.craft.observation import OBS_DIM as CRAFT_STATE_DIM
+from envs.dial import OBS_DIM as DIAL_STATE_DIM
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.configs.types import FeatureType
 from lerobot.datasets.io_utils import load_episodes
@@ -25,9 +26,11 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 
 from ocn_data.packed_view import PACKED_ACTION, PACKED_KEYS, PACKED_LENGTH, PACKED_STATE
 
-# Encoders of Craft's compact state (see policies/ocn/encoders.py); "identity" takes float states as they are.
+# Encoders of Craft's compact state (see policies/ocn/encoders.py); "identity" takes float states as they
+# are (standardised); "dial_keys" reads Dial's raw state and adds each key's log distance.
 CRAFT_ENCODERS = ("craft", "craft_full_view")
-OBS_ENCODERS = (*CRAFT_ENCODERS, "identity")
+RAW_STATE_ENCODERS = (*CRAFT_ENCODERS, "dial_keys")
+OBS_ENCODERS = (*RAW_STATE_ENCODERS, "identity")
 ACTION_TYPES = ("discrete", "continuous")
 WINDOW_STARTS = ("episode", "any", "packed")
 INFERENCE_MODES = ("sample", "greedy")
@@ -124,8 +127,9 @@ class SequenceConfig(PreTrainedConfig):
             self.normalization_mapping = self._default_normalization()
 
     def _default_normalization(self) -> dict[str, NormalizationMode]:
-        """Craft states are symbolic ids and discrete actions are indices: neither may be rescaled."""
-        state = NormalizationMode.IDENTITY if self.obs_encoder in CRAFT_ENCODERS else NormalizationMode.MEAN_STD
+        """Craft states are symbolic ids and discrete actions are indices: neither may be rescaled; the
+        dial_keys encoder measures distances in metres, so it takes the state unscaled too."""
+        state = NormalizationMode.IDENTITY if self.obs_encoder in RAW_STATE_ENCODERS else NormalizationMode.MEAN_STD
         action = NormalizationMode.IDENTITY if self.action_type == "discrete" else NormalizationMode.MEAN_STD
         return {"STATE": state, "ACTION": action}
 
@@ -182,6 +186,10 @@ class SequenceConfig(PreTrainedConfig):
             raise ValueError(
                 f"The {self.obs_encoder} encoder expects a compact state of shape ({CRAFT_STATE_DIM},), "
                 f"got {state.shape}; float states (Dial) take --policy.obs_encoder=identity."
+            )
+        if self.obs_encoder == "dial_keys" and tuple(state.shape) != (DIAL_STATE_DIM,):
+            raise ValueError(
+                f"The dial_keys encoder expects Dial's state of shape ({DIAL_STATE_DIM},), got {state.shape}."
             )
         if self.action_type == "discrete" and tuple(action.shape) != (1,):
             raise ValueError(

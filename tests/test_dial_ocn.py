@@ -18,17 +18,20 @@ import numpy as np
 import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+from lerobot.configs import NormalizationMode
+from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.policies.factory import make_policy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from torch.distributions import Categorical, Independent, MixtureSameFamily, Normal
 
 import lerobot_policy_ocn  # noqa: F401  (registers `ocn` and `dial` as LeRobot's CLIs do)
-from envs.dial import PRESS_L1, DialBatch, key_positions, parse_pin
+from envs.dial import PRESS_L1, DialBatch, dial_poses, key_positions, parse_pin
 from envs.dial.scene import N_JOINTS
 from ocn_data.dial_recorder import dial_state_names
 from ocn_data.episodes_table import load_episodes, split_episodes
 from ocn_data.mcap_log import read_mcap_messages
 from policies.ocn import OCNConfig, OCNPolicy
+from policies.ocn.encoders import DialKeyEncoder
 from policies.ocn.processor_ocn import make_ocn_pre_post_processors
 from policies.sequence import training_windows
 from tools.dial_rollouts import DIAL_WORLD
@@ -239,6 +242,37 @@ def test_ground_truth_boundaries_are_the_key_presses(dial_dataset):
         truth = boundaries_from_labels(episodes.subtask_index[i, :n])  # what the parsing metrics score against
         np.testing.assert_array_equal(truth, _key_presses(episodes.state[i, :n], pin))
         assert tuple(episodes.subtask_id[i, truth]) == pin  # each segment is its digit's
+
+
+def test_dial_keys_encoder_sees_each_press_as_its_log_distance_crossing_zero(dial_dataset):
+    episodes = load_episodes(dial_dataset, split_episodes(dial_dataset, "all"))
+    encoder = DialKeyEncoder()
+    for i, n in enumerate(episodes.lengths):
+        pin = parse_pin(episodes.tasks[i])
+        features = encoder(torch.as_tensor(episodes.state[i, :n]))
+        assert features.shape == (n, 49) and torch.isfinite(features).all()
+        log_distance = features[:, -10:]
+        for press, digit in zip(boundaries_from_labels(episodes.subtask_index[i, :n])[:-1], pin, strict=False):
+            # The press step's own frame is still outside PRESS_L1; the next frame is the first inside.
+            assert log_distance[press, digit] >= 0 > log_distance[press + 1, digit]
+    home = torch.as_tensor(np.concatenate([dial_poses().home, np.zeros(30)]), dtype=torch.float32)
+    torch.testing.assert_close(encoder(home)[:N_JOINTS], torch.zeros(N_JOINTS))
+
+
+def test_ocn_with_the_dial_keys_encoder_trains_on_the_raw_state(dial_dataset):
+    policy, meta = _policy(dial_dataset, obs_encoder="dial_keys")
+    assert policy.config.normalization_mapping["STATE"] is NormalizationMode.IDENTITY
+    preprocessor, _ = make_ocn_pre_post_processors(policy.config, meta.stats)
+    raw = _windows(dial_dataset, policy.config)
+    batch = preprocessor(raw)
+    torch.testing.assert_close(batch[OBS_STATE], raw[OBS_STATE].float())
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    assert torch.isfinite(loss) and all(p.grad is not None and torch.isfinite(p.grad).all() for p in policy.parameters())
+    craft_state = {OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))}
+    with pytest.raises(ValueError, match=r"dial_keys encoder expects Dial's state of shape \(39,\)"):
+        OCNConfig(device="cpu", obs_encoder="dial_keys", action_type="continuous", input_features=craft_state,
+                  output_features={ACTION: PolicyFeature(FeatureType.ACTION, (9,))}).validate_features()
 
 
 def test_ocn_eval_on_dial(trained, dial_dataset, tmp_path):

@@ -5,11 +5,22 @@ cheaper to record and load than the one-hot itself. `craft` gives OMPN's 1075-fl
 paper's); `craft_full_view` gives the exact egocentric map (4750 floats), in which the scripted
 expert's action is a function of the observation (objects beyond OMPN's 5x5 window are placed only to
 their 2x2 block there).
+
+Dial's 39 floats go in standardised by the preprocessor (`identity`), as the paper's model reads them,
+or raw (`dial_keys`), from which `DialKeyEncoder` adds each key's log L1 distance: the quantity the env
+presses a key on.
 """
 
+import math
+
+import torch
 from torch import Tensor, nn
 
 from envs.craft.observation import FULL_VIEW_DIM, OMPN_DIM, full_view_features, ompn_features
+from envs.dial import OBS_DIM as DIAL_STATE_DIM
+from envs.dial import PRESS_L1
+from envs.dial.poses import dial_poses
+from envs.dial.scene import N_JOINTS
 
 from policies.sequence import CRAFT_ENCODERS, SequenceConfig
 
@@ -39,8 +50,42 @@ class IdentityEncoder(nn.Module):
         return state.float()
 
 
+class DialKeyEncoder(nn.Module):
+    """Raw Dial state [..., 39] -> [..., 49]: the joint angles from the home pose in units of
+    `JOINT_SCALE`, the fingertip's offset from each key's press point in units of `OFFSET_SCALE`, and
+    each key's log(L1 distance / `PRESS_L1`).
+
+    Why: a key counts as pressed when the L1 distance falls below `PRESS_L1` = 2 cm, while the
+    standardised offsets move by about 0.25 per 2 cm; the frames either side of a press differ by
+    millimetres there, and an option's termination has to carve that diamond out of three inputs. In
+    the log distance the press is one input crossing 0. The scales are fixed physical units (about
+    one standard deviation of the recorded demonstrations), so the encoder holds no statistics and
+    needs none from the dataset.
+    """
+
+    JOINT_SCALE = 0.3
+    OFFSET_SCALE = 0.1
+    # Floor of the L1 distance inside the log (metres): the fingertip never sits exactly on a point.
+    MIN_DISTANCE = 1e-3
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.n_keys = (DIAL_STATE_DIM - N_JOINTS) // 3
+        self.out_dim = DIAL_STATE_DIM + self.n_keys
+        self.register_buffer("home", torch.tensor(dial_poses().home, dtype=torch.float32), persistent=False)
+
+    def forward(self, state: Tensor) -> Tensor:
+        state = state.float()
+        joints, offsets = state[..., :N_JOINTS], state[..., N_JOINTS:]
+        distance = offsets.unflatten(-1, (self.n_keys, 3)).abs().sum(-1)
+        log_distance = torch.log(distance.clamp_min(self.MIN_DISTANCE)) - math.log(PRESS_L1)
+        return torch.cat([(joints - self.home) / self.JOINT_SCALE, offsets / self.OFFSET_SCALE, log_distance], -1)
+
+
 def make_encoder(config: SequenceConfig) -> nn.Module:
     """Encoder named by `config.obs_encoder`; it exposes its output width as `out_dim`."""
     if config.obs_encoder in CRAFT_ENCODERS:
         return CraftEncoder(full_view=config.obs_encoder == "craft_full_view")
+    if config.obs_encoder == "dial_keys":
+        return DialKeyEncoder()
     return IdentityEncoder(config.state_dim)
