@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -142,8 +143,11 @@ def test_ocn_reproduce_dial_help_lists_its_options(capsys):
     assert exit_info.value.code == 0
     text = capsys.readouterr().out
     for option in ("--seeds", "--frames", "--envs", "--rewards", "--methods", "--tasks", "--rollouts", "--steps",
-                   "--batch-size", "--episodes-per-task", "--workdir", "--results", "--first-seed", "--usage-balance"):
+                   "--batch-size", "--episodes-per-task", "--workdir", "--results", "--first-seed", "--usage-balance", "--gamma"):
         assert option in text, option
+    # Dial's own discount, not the paper's 0.97.
+    assert re.search(r"--gamma GAMMA\s+PPO's discount[^()]*\(ocn-finetune --gamma\)[^()]*\(default:\s+0\.995\)",
+                     text)
 
 
 def test_dial_clones_train_with_the_dial_flags_and_finetune_on_the_pins(dial_dataset, tmp_path):
@@ -156,7 +160,7 @@ def test_dial_clones_train_with_the_dial_flags_and_finetune_on_the_pins(dial_dat
     assert dial.TWO_DIGIT_PINS.split(",") == ["12", "14", "18", "21", "24", "28", "41", "42", "48", "81", "82", "84"]
     assert [method.key for method in dial.METHODS] == ["ocn", "moe"]
     args = argparse.Namespace(steps=2, batch_size=8, window_size=120, num_workers=0, threads=1,
-                              controller_lr_scale=1.0, frames=100, envs=4, entropy=0.001)
+                              controller_lr_scale=1.0, frames=100, envs=4, entropy=0.001, gamma=dial.DIAL_GAMMA)
     moe = dial.METHODS[1]
     overrides = {"n_options": 4, "temperature": 10.0, **moe.overrides}
     command = train_command(dial.train_settings(args), dial_dataset, DIAL_REPO_ID, tmp_path / "train", 1, overrides)
@@ -168,6 +172,7 @@ def test_dial_clones_train_with_the_dial_flags_and_finetune_on_the_pins(dial_dat
     command = finetune_command(args, setting, moe, "sparse", 1, [clone], tmp_path / "out")
     assert command[command.index("--tasks") + 1] == "124,481,842" and "--flat" not in command
     assert command[command.index("--checkpoint") + 1] == str(clone.checkpoint)
+    assert command[command.index("--gamma") + 1] == "0.995"  # Dial's discount, not the paper's 0.97
     # Clones under the usage balance live beside the paper-loss ones.
     paper, balanced = (argparse.Namespace(workdir=tmp_path, usage_balance=w) for w in (0.0, 1.0))
     assert dial.clone_dir(paper, moe, 2) == tmp_path / "clone" / "dial2" / "moe" / "seed2"

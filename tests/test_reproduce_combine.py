@@ -66,6 +66,7 @@ def test_combined_study_checks_every_baseline_against_ocn(tmp_path):
 
 @pytest.mark.parametrize("second, problem", [
     ({"runs": [_run("MoE", 0.5)], "frames": 2000}, "differ in frames"),
+    ({"runs": [_run("MoE", 0.5)], "gamma": 0.995}, "differ in gamma"),
     ({"runs": [_run("OCN", 0.5)]}, "the OCN run with reward sparse and seed 1 is in both"),
 ])
 def test_files_of_another_recipe_or_with_the_same_rows_are_refused(tmp_path, second, problem):
@@ -112,10 +113,10 @@ def test_a_file_without_run_curves_and_rows_over_seeds_is_refused(tmp_path):
 
 
 def test_a_setting_a_file_leaves_out_counts_as_its_default(tmp_path):
-    """Files written before `--dart-noise`, `--window-start`, the usage balance or settling existed
-    leave those settings out; they ran at the defaults and combine with files that spell them out."""
+    """Files written before `--dart-noise`, `--window-start`, the usage balance, settling or `--gamma`
+    existed leave those settings out; they ran at the defaults and combine with files that spell them out."""
     defaults = {"dart_noise": 0.0, "window_start": "episode", "usage_balance": 0.0, "settle_steps": 0,
-                "settle_termination_cost": 0.0}
+                "settle_termination_cost": 0.0, "gamma": 0.97}
     old = _study(tmp_path / "a.json", [_run("OCN", 0.9)], legacy=True, **{key: None for key in defaults})
     new = _study(tmp_path / "b.json", [_run("MoE", 0.3)], **defaults)
     merged = _combine(tmp_path, old, new)["settings"]

@@ -111,7 +111,7 @@ def test_unknown_method_is_refused(tmp_path):
 def test_s2_pools_the_options_of_both_cloned_models(tmp_path):
     import argparse
 
-    args = argparse.Namespace(frames=100, envs=4, entropy=0.001)
+    args = argparse.Namespace(frames=100, envs=4, entropy=0.001, gamma=0.97)
     clones = [TrainedRun(tmp_path / name / "pretrained_model", "", None) for name in ("ab", "cd")]
     command = finetune_command(args, SETTINGS["s2"], METHODS[0], "sparse", 1, clones, tmp_path / "out")
     assert [command[i + 1] for i, word in enumerate(command) if word == "--checkpoint"] == [str(c.checkpoint) for c in clones]
@@ -120,18 +120,25 @@ def test_s2_pools_the_options_of_both_cloned_models(tmp_path):
     assert "--entropy" not in command  # the paper's bonus: runs made before it could change are reused
 
 
-def test_a_non_default_entropy_bonus_or_envs_reach_ocn_finetune_and_get_folders_of_their_own(tmp_path):
+def test_a_non_default_entropy_bonus_envs_or_discount_reach_ocn_finetune_and_get_folders_of_their_own(tmp_path):
     import argparse
 
     from tools.reproduce.finetune import ppo_suffix, study_settings
 
-    args = argparse.Namespace(frames=1_500_000, default_frames=300_000, envs=4, entropy=0.01)
+    args = argparse.Namespace(frames=1_500_000, default_frames=300_000, envs=4, entropy=0.01, gamma=0.99,
+                              default_gamma=0.97)
     command = finetune_command(args, SETTINGS["s2"], METHODS[0], "sparse", 1, [], tmp_path / "out")
     assert command[command.index("--entropy") + 1] == "0.01"
     assert command[command.index("--envs") + 1] == "4"
-    assert ppo_suffix(args) == "_frames1500000_entropy0.01_envs4"
-    assert ppo_suffix(argparse.Namespace(frames=300_000, default_frames=300_000, entropy=0.001, envs=64)) == ""
-    assert study_settings({"settings": {"frames": 300_000}})["entropy"] == 0.001  # files from before the flag
+    assert command[command.index("--gamma") + 1] == "0.99"
+    assert ppo_suffix(args) == "_frames1500000_entropy0.01_envs4_gamma0.99"
+    default = argparse.Namespace(frames=300_000, default_frames=300_000, entropy=0.001, envs=64, gamma=0.97,
+                                 default_gamma=0.97)
+    assert ppo_suffix(default) == ""
+    assert "--gamma" not in finetune_command(default, SETTINGS["s1"], METHODS[0], "sparse", 1, [], tmp_path / "out")
+    # Files from before the flags were added ran at the paper's values.
+    assert study_settings({"settings": {"frames": 300_000}})["entropy"] == 0.001
+    assert study_settings({"settings": {"frames": 300_000}})["gamma"] == 0.97
 
 
 def test_hil_is_cloned_as_hil_and_checked_against_ocn(tmp_path):
@@ -139,7 +146,7 @@ def test_hil_is_cloned_as_hil_and_checked_against_ocn(tmp_path):
 
     hil = {method.key: method for method in METHODS}["hil"]
     assert hil.name == "HIL" and hil.overrides == {"hierarchy": "hil"}
-    args = argparse.Namespace(frames=100, envs=4, entropy=0.001)
+    args = argparse.Namespace(frames=100, envs=4, entropy=0.001, gamma=0.97)
     clone = TrainedRun(tmp_path / "hil" / "pretrained_model", "", None)
     command = finetune_command(args, SETTINGS["s1"], hil, "sparse", 1, [clone], tmp_path / "out")
     assert "--flat" not in command and command[command.index("--checkpoint") + 1] == str(clone.checkpoint)
@@ -166,7 +173,7 @@ def test_compile_is_cloned_with_its_own_defaults_and_finetuned_over_its_decoders
     method = {method.key: method for method in METHODS}["compile"]
     assert method.name == "compILE" and method.policy_type == "compile"
     args = argparse.Namespace(steps=2, batch_size=8, window_size=24, num_workers=0, threads=1,
-                              controller_lr_scale=0.1, frames=100, envs=4, entropy=0.001)
+                              controller_lr_scale=0.1, frames=100, envs=4, entropy=0.001, gamma=0.97)
     settings, overrides = clone_settings(args, SETTINGS["s2"], method)
     command = train_command(settings, craft_dataset, "local/craft_small", tmp_path / "train", 1, overrides)
     assert command[1] == "--policy.type=compile" and "--policy.window_size=24" in command
@@ -211,7 +218,7 @@ def test_ompn_is_cloned_with_its_own_defaults_finetuned_whole_in_s1_only_and_che
 
     ompn = {method.key: method for method in METHODS}["ompn"]
     args = argparse.Namespace(steps=2, batch_size=8, window_size=24, num_workers=0, threads=1,
-                              controller_lr_scale=0.1, frames=100, envs=4, entropy=0.001)
+                              controller_lr_scale=0.1, frames=100, envs=4, entropy=0.001, gamma=0.97)
     settings, overrides = clone_settings(args, SETTINGS["s1"], ompn)
     command = train_command(settings, craft_dataset, "local/craft_small", tmp_path / "train", 1, overrides)
     assert command[1] == "--policy.type=ompn" and "--policy.window_size=24" in command

@@ -81,7 +81,8 @@ REWARDS = ("sparse", "dense")
 BASELINES = tuple(method.name for method in METHODS if method.key != "ocn")
 # The value of each study setting that results files written before it existed leave out.
 SETTING_DEFAULTS = {"window_start": imitation.STUDY_DEFAULTS["window_start"], "usage_balance": 0.0,
-                    **imitation.UNSETTLED, **imitation.RECORDING_DEFAULTS, "entropy": PPOConfig.entropy_coef}
+                    **imitation.UNSETTLED, **imitation.RECORDING_DEFAULTS, "entropy": PPOConfig.entropy_coef,
+                    "gamma": PPOConfig.gamma}
 
 
 def study_settings(result: dict[str, Any]) -> dict[str, Any]:
@@ -143,14 +144,17 @@ def clone_suffix(args: argparse.Namespace, method: Method) -> str:
 
 
 def ppo_suffix(args: argparse.Namespace) -> str:
-    """Folder-name suffix of a finetuning run at a budget, an entropy bonus or a number of envs other
-    than the study's default (`_frames1500000_entropy0.01_envs256`), so that runs of several PPO
-    settings live side by side (runs made before a setting entered the name are at its default)."""
+    """Folder-name suffix of a finetuning run at a budget, an entropy bonus, a number of envs or a
+    discount other than the study's default (`_frames1500000_entropy0.01_envs256_gamma0.99`), so that
+    runs of several PPO settings live side by side (runs made before a setting entered the name are at
+    its default)."""
     changed = {"frames": args.frames} if args.frames != args.default_frames else {}
     if args.entropy != PPOConfig.entropy_coef:
         changed["entropy"] = args.entropy
     if args.envs != DEFAULT_ENVS:
         changed["envs"] = args.envs
+    if args.gamma != args.default_gamma:
+        changed["gamma"] = args.gamma
     return imitation.settings_suffix(changed)
 
 
@@ -188,11 +192,14 @@ def finetune_command(args: argparse.Namespace, setting: Setting, method: Method,
 
     Over OCN-type pools (OCN, MoE, HIL) the new controller's temperature is spelled out: it once
     defaulted to the checkpoint's, so a run made then is refused rather than reused. The entropy bonus
-    is spelled out only where it is not the paper's, so that runs made before it could change are reused."""
+    is spelled out only where it is not the paper's, and so is the discount, so that runs made before
+    either could change are reused."""
     command = [console_script("ocn-finetune"), "--tasks", setting.tasks, "--reward", reward,
                "--frames", str(args.frames), "--envs", str(args.envs), "--seed", str(seed), "--out", str(out)]
     if args.entropy != PPOConfig.entropy_coef:
         command += ["--entropy", f"{args.entropy:g}"]
+    if args.gamma != PPOConfig.gamma:
+        command += ["--gamma", f"{args.gamma:g}"]
     if method.overrides is None:
         return command + ["--flat"]
     if method.policy_type == "ocn":
@@ -369,7 +376,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"`lerobot-train` on {imitation.loading_words(settings)}{imitation.recording_words(settings)} "
         f"(OCN-family clones' option-usage balance {settings['usage_balance']}; "
         f"OCN's: {imitation.settling_words(settings)}); PPO through `ocn-finetune`, "
-        f"{settings['frames']} env frames per run, {settings['envs']} envs, entropy bonus {settings['entropy']:g}. "
+        f"{settings['frames']} env frames per run, {settings['envs']} envs, entropy bonus {settings['entropy']:g}, "
+        f"discount {settings['gamma']:g}. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
         f"seeds. Runs finished: {result['runs_finished']} of {result['runs_planned']}; wall time of "
         f"{'the invocations' if 'sources' in result else 'this invocation'} {result['wall_s'] / 60:.0f} min.",
@@ -463,8 +471,9 @@ def chosen_methods(args: argparse.Namespace, methods: tuple[Method, ...]) -> lis
     return [known[key] for key in args.methods]
 
 
-def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Method, ...], frames: int) -> None:
-    """The options of a finetuning study's PPO runs: seeds, budget, envs, rewards and methods."""
+def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Method, ...], frames: int,
+                           gamma: float = PPOConfig.gamma) -> None:
+    """The options of a finetuning study's PPO runs: seeds, budget, discount, envs, rewards and methods."""
     parser.add_argument("--seeds", type=int, default=3)
     imitation.add_first_seed_argument(parser)
     parser.add_argument("--frames", type=int, default=frames,
@@ -474,6 +483,10 @@ def add_finetune_arguments(parser: argparse.ArgumentParser, methods: tuple[Metho
     parser.add_argument("--entropy", type=float, default=PPOConfig.entropy_coef,
                         help="PPO's entropy bonus coefficient, the same for every method (ocn-finetune --entropy); "
                              "runs at another value than the paper's get folders of their own")
+    parser.add_argument("--gamma", type=float, default=gamma,
+                        help="PPO's discount per env step, the same for every method (ocn-finetune --gamma); "
+                             "runs at another value than the study's default get folders of their own")
+    parser.set_defaults(default_gamma=gamma)
     parser.add_argument("--envs", type=int, default=DEFAULT_ENVS,
                         help="envs stepped together in PPO, one episode each per iteration (the batch of an update); "
                              "runs at another number than the default get folders of their own")
