@@ -457,9 +457,30 @@ def test_teacher_forcing_steps_the_controller_and_restarts_options_only_where_a_
     torch.testing.assert_close(again.controller_logits[2, 0], out.controller_logits[2, 0])
     torch.testing.assert_close(again.params[2, 0], out.params[2, 0])
     assert not torch.allclose(again.params[1, 0], out.params[1, 0])
-    # Options of a fixed length have no terminations to teach.
+    # Options of a fixed length have no terminations to teach; MoE's one-step options take a choice at every step only.
+    moe = make_policy(hierarchy="moe").core
     with pytest.raises(ValueError, match="fixed length"):
-        make_policy(hierarchy="moe").core.teacher_forced(core.project(x), state, option, decided)
+        moe.teacher_forced(moe.project(x), state, option, decided)
+    with pytest.raises(ValueError, match="fixed length"):
+        make_policy(hierarchy="hil").core.teacher_forced(core.project(x), state, option, torch.ones_like(decided))
+    every_step = moe.teacher_forced(moe.project(x), state, option, torch.ones_like(decided))
+    fresh = moe.options(x[1], moe.option_init.unsqueeze(1).expand(-1, 2, -1))
+    torch.testing.assert_close(every_step.params[1], fresh.logits[option[1], torch.arange(2)])
+
+
+def restarting_reference(policy: OCNPolicy, batch: dict, labels: torch.Tensor) -> tuple[float, float]:
+    """The labelled NLL and choice cross-entropy of a model that chooses and restarts its option at
+    every frame: the soft recurrence's p^c of each frame's label, and each label's option run from h^o_0."""
+    real = labels >= 0
+    with torch.no_grad():
+        soft = policy._unroll(batch[OBS_STATE], batch["task"])
+        initial = policy.core.option_init.unsqueeze(1).expand(-1, labels.shape[0], -1)
+        restarted = torch.stack([policy.core.options(x, initial).logits for x in batch[OBS_STATE].unbind(1)])
+    index = labels.clamp_min(0).T
+    p_c = soft.p_c.gather(-1, index[..., None]).squeeze(-1)
+    params = restarted.gather(1, index[:, None, :, None].expand(-1, 1, -1, restarted.shape[-1]))
+    log_prob = policy.head.log_prob(params, batch[ACTION].transpose(0, 1)).squeeze(1)
+    return -log_prob.T[real].mean().item(), -p_c.T[real].log().mean().item()
 
 
 def test_labelled_loss_is_the_given_options_nll_plus_the_choice_and_termination_cross_entropies():
@@ -471,21 +492,30 @@ def test_labelled_loss_is_the_given_options_nll_plus_the_choice_and_termination_
     labels = torch.tensor([[0, 1, 0, 2], [2, 0, 1, 0], [1, 2, -1, -1]])
     batch[f"{ACTION}_is_pad"][2, 2:] = True
     loss, stats = policy.labelled_forward(batch, labels)
-    real = labels >= 0
-    with torch.no_grad():
-        soft = policy._unroll(batch[OBS_STATE], batch["task"])
-        initial = policy.core.option_init.unsqueeze(1).expand(-1, 3, -1)
-        restarted = torch.stack([policy.core.options(x, initial).logits for x in batch[OBS_STATE].unbind(1)])
-    index = labels.clamp_min(0).T
-    p_c = soft.p_c.gather(-1, index[..., None]).squeeze(-1)
-    params = restarted.gather(1, index[:, None, :, None].expand(-1, 1, -1, restarted.shape[-1]))
-    log_prob = policy.head.log_prob(params, batch[ACTION].transpose(0, 1)).squeeze(1)
+    nll, choice_ce = restarting_reference(policy, batch, labels)
     assert stats["frames_used"] == 10
-    assert stats["nll"] == pytest.approx(-log_prob.T[real].mean().item(), rel=1e-5)
-    assert stats["choice_ce"] == pytest.approx(-p_c.T[real].log().mean().item(), rel=1e-5)
+    assert stats["nll"] == pytest.approx(nll, rel=1e-5)
+    assert stats["choice_ce"] == pytest.approx(choice_ce, rel=1e-5)
     assert stats["termination_bce"] == pytest.approx(0.0, abs=1e-6) and stats["mean_end"] == 1.0
     assert stats["mean_end_at_switch"] == 1.0
     assert loss.item() == pytest.approx(stats["nll"] + stats["choice_ce"] + stats["termination_bce"], rel=1e-5)
+
+
+def test_labelled_moe_loss_scores_the_choice_at_every_frame_and_has_no_termination_term():
+    # The MoE baseline given the split: its controller chooses at every frame, also where the label
+    # runs on, and every option restarts from h^o_0, so the loss is the restarting model's at all frames.
+    policy = make_policy(temperature=1.0, hierarchy="moe")
+    batch = make_batch(batch=3, steps=4)
+    labels = torch.tensor([[0, 0, 1, 1], [2, 2, 2, 0], [1, 1, -1, -1]])
+    loss, stats = policy.labelled_forward(batch, labels)
+    nll, choice_ce = restarting_reference(policy, batch, labels)
+    assert stats["nll"] == pytest.approx(nll, rel=1e-5) and stats["choice_ce"] == pytest.approx(choice_ce, rel=1e-5)
+    assert "termination_bce" not in stats and stats["frames_used"] == 10
+    assert loss.item() == pytest.approx(nll + choice_ce, rel=1e-5)
+    loss.backward()
+    assert policy.core.controller_init.grad.abs().sum() > 0 and policy.core.options.w_out.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="termination_weight 3.0"):
+        policy.labelled_forward(batch, labels, termination_weight=3.0)
 
 
 def test_labelled_loss_trains_the_controller_its_task_states_every_labelled_option_and_the_terminations():

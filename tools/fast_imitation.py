@@ -291,7 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     run.add_argument("--supervise-options", action="store_true",
                      help="give the split instead of inducing it: each frame's option is its ground-truth subtask's "
                           "(one option per subtask of the training split), the controller learns the labelled choice "
-                          "at each switch and the options' terminations the switches (OCNPolicy.labelled_forward); "
+                          "at each switch and the options' terminations the switches (OCNPolicy.labelled_forward; "
+                          "under hierarchy=moe the controller learns the label at every frame); "
                           "evaluation runs the model as usual. What the model can do once the split is found")
     run.add_argument("--termination-weight", type=float, default=1.0,
                      help="with --supervise-options: the weight of the terminations' cross-entropy in the loss")

@@ -188,12 +188,19 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         holds whole episodes from their first frame, as `parse` takes them; `option` [B, T] is each
         frame's option index, -1 on padding. The stats include the mean termination at the switches and
         at the other frames, which tell terminations that fire where they should from a mean that only
-        matches the switches' rate."""
+        matches the switches' rate.
+
+        Under `hierarchy="moe"` the controller chooses at every frame (its cross-entropy is over all of
+        them) and there is no termination term: the MoE baseline given the same split."""
         mask = option >= 0
         used = int(mask.sum(1).max())
         mask, option = mask[:, :used].transpose(0, 1), option[:, :used].clamp_min(0).transpose(0, 1)
         decided = torch.ones_like(mask)
-        decided[1:] = option[1:] != option[:-1]
+        moe = self.config.hierarchy == "moe"
+        if moe and termination_weight != 1.0:
+            raise ValueError(f"termination_weight {termination_weight} weighs a term MoE's loss does not have.")
+        if not moe:
+            decided[1:] = option[1:] != option[:-1]
         state = batch[OBS_STATE][:, :used]
         action = batch[ACTION][:, :used].reshape(state.shape[0], used, self.config.action_dim)
         task_index = self.task_index(batch["task"], state.shape[0])
@@ -201,12 +208,15 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         out = self.core.teacher_forced(projected, self.core.initial_state(task_index), option, decided)
         nll = -self.head.log_prob(out.params.unsqueeze(1), action.transpose(0, 1)).squeeze(1)[mask].mean()
         choice = torch.nn.functional.cross_entropy(out.controller_logits[mask & decided], option[mask & decided])
+        stats = {"nll": nll.item(), "choice_ce": choice.item(), "frames_used": int(mask.sum())}
+        if moe:
+            return nll + choice, stats
         later = mask.clone()
         later[0] = False
         termination = torch.nn.functional.binary_cross_entropy(out.end[later], decided[later].to(out.end.dtype))
-        stats = {"nll": nll.item(), "choice_ce": choice.item(), "termination_bce": termination.item(),
-                 "mean_end": out.end[later].mean().item(), "mean_end_at_switch": out.end[later & decided].mean().item(),
-                 "mean_end_elsewhere": out.end[later & ~decided].mean().item(), "frames_used": int(mask.sum())}
+        stats |= {"termination_bce": termination.item(), "mean_end": out.end[later].mean().item(),
+                  "mean_end_at_switch": out.end[later & decided].mean().item(),
+                  "mean_end_elsewhere": out.end[later & ~decided].mean().item()}
         return nll + choice + termination_weight * termination, stats
 
     @torch.no_grad()

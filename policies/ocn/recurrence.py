@@ -294,9 +294,13 @@ class OCNCore(nn.Module):
         [T, B] marks the steps where it was chosen (True at t = 0). There the controller steps and the
         option restarts from h^o_0; elsewhere the controller keeps its state and the option continues.
         This is eq. 17 with e_t and p^c set to one-hot ground truth, for training on labelled segments
-        (`tools.fast_imitation --supervise-options`: what the model can do when the split is given)."""
-        if self.skill_length is not None:
-            raise ValueError("Teacher forcing gives the options' terminations; options of a fixed length have none.")
+        (`tools.fast_imitation --supervise-options`: what the model can do when the split is given).
+        MoE's one-step options take a choice at every step (`decided` all True); other fixed-length
+        options (HIL) have no terminations to teach and are refused."""
+        one_step = self.skill_length == 1
+        if self.skill_length is not None and not (one_step and bool(decided.all())):
+            raise ValueError("Teacher forcing gives the options' terminations; options of a fixed length have none "
+                             "(MoE's one-step options only take a choice given at every step).")
         rows = torch.arange(option.shape[1], device=option.device)
         controller_h, option_h, previous = state.controller_h, state.option_h, option[0]
         steps = zip(projected.controller.unbind(0), projected.options.unbind(0), option.unbind(0), decided.unbind(0),
@@ -306,7 +310,7 @@ class OCNCore(nn.Module):
             logits, stepped_h = self.decide(x_controller, controller_h)
             controller_h = torch.where(decide[:, None], stepped_h, controller_h)
             restarted = self.options.step(x_options, self.option_init.unsqueeze(1))
-            continued = self._continued(x_options, option_h, restarted)
+            continued = self._continued(x_options, option_h, restarted, one_step)
             gate = decide[None, :, None]
             params = torch.where(gate, restarted.logits, continued.logits)[current, rows]
             option_h = torch.where(gate, restarted.hidden, continued.hidden)
