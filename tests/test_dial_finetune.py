@@ -143,7 +143,8 @@ def test_ocn_reproduce_dial_help_lists_its_options(capsys):
     assert exit_info.value.code == 0
     text = capsys.readouterr().out
     for option in ("--seeds", "--frames", "--envs", "--rewards", "--methods", "--tasks", "--rollouts", "--steps",
-                   "--batch-size", "--episodes-per-task", "--workdir", "--results", "--first-seed", "--usage-balance", "--gamma"):
+                   "--batch-size", "--episodes-per-task", "--workdir", "--results", "--first-seed", "--usage-balance",
+                   "--gamma"):
         assert option in text, option
     # Dial's own discount, not the paper's 0.97.
     assert re.search(r"--gamma GAMMA\s+PPO's discount[^()]*\(ocn-finetune --gamma\)[^()]*\(default:\s+0\.995\)",

@@ -192,13 +192,13 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
 
         Under `hierarchy="moe"` the controller chooses at every frame (its cross-entropy is over all of
         them) and there is no termination term: the MoE baseline given the same split."""
+        moe = self.config.hierarchy == "moe"
+        if moe and termination_weight != 1.0:
+            raise ValueError(f"termination_weight {termination_weight} weighs a term MoE's loss does not have.")
         mask = option >= 0
         used = int(mask.sum(1).max())
         mask, option = mask[:, :used].transpose(0, 1), option[:, :used].clamp_min(0).transpose(0, 1)
         decided = torch.ones_like(mask)
-        moe = self.config.hierarchy == "moe"
-        if moe and termination_weight != 1.0:
-            raise ValueError(f"termination_weight {termination_weight} weighs a term MoE's loss does not have.")
         if not moe:
             decided[1:] = option[1:] != option[:-1]
         state = batch[OBS_STATE][:, :used]

@@ -11,8 +11,9 @@ often in both splits and every ordered pair of digits is demonstrated. For each 
 clone with `ocn-eval` on the validation split (F1@1, NMI, free-run success on the 2-digit PINs,
 option x digit table), then finetunes a fresh controller over each clone's frozen options with
 `ocn-finetune` on the 3-digit PINs of `--tasks`, under the sparse and the dense reward, every run
-on the same env-frame budget and at the discount `DIAL_GAMMA` (`--gamma`), not the paper's 0.97. The paper compares OCN with OMPN and MoE; OMPN has no option pool to
-finetune, and flat PPO over 9 continuous torques is not in its figure, so MoE is the baseline here.
+on the same env-frame budget and at the discount `DIAL_GAMMA` (`--gamma`), not the paper's 0.97.
+The paper compares OCN with OMPN and MoE; OMPN has no option pool to finetune, and flat PPO over 9
+continuous torques is not in its figure, so MoE is the baseline here.
 
 The default finetuning PINs, 124, 481 and 842: three tasks as in figure 6; no digit directly
 follows itself (as the env's random PINs: the demonstrations never press one key twice in a row);
@@ -131,7 +132,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"{settings['batch_size']} windows of {settings['window_size']} frames, {N_OPTIONS} options, T = 10; "
         f"imitation scores: `ocn-eval` on the validation split ({settings['rollouts']} env episodes per PIN and "
         f"per option-table cell); finetuning: `ocn-finetune`, {settings['frames']} env frames per run, "
-        f"{settings['envs']} envs, entropy bonus {settings['entropy']:g}, discount {settings['gamma']:g}. Values at the budget are the mean of each run's last {finetune.FINAL_ROWS} PPO "
+        f"{settings['envs']} envs, entropy bonus {settings['entropy']:g}, discount {settings['gamma']:g}. "
+        f"Values at the budget are the mean of each run's last {finetune.FINAL_ROWS} PPO "
         f"iterations, then mean (std) over seeds. Runs finished: {result['runs_finished']} of "
         f"{result['runs_planned']}; wall time of this invocation {result['wall_s'] / 60:.0f} min.",
         "",
