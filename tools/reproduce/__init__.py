@@ -3,9 +3,10 @@
 Each experiment is a subcommand in its own module: `imitation-s1` (skill induction and its
 ablations, `imitation.py`), `s1` and `s2` (finetuning over frozen skills against MoE, HIL and flat
 PPO, `finetune.py`), `parsing-s1` (how OCN and the baselines parse S1 over training, `parsing.py`),
-`dial` (skills cloned from 2-digit PINs, finetuned on 3-digit PINs against MoE, `dial.py`), and
+`dial` (skills cloned from 2-digit PINs, finetuned on 3-digit PINs against MoE, `dial.py`),
 `combine` (one finetuning or parsing study from the results files of several invocations,
-`combine.py`).
+`combine.py`), and `gather` (one finetuning study from `ocn-finetune` folders run by hand,
+`gather.py`).
 What they share is in `runs.py` (recording, resumable `lerobot-train` runs) and `report.py` (the
 results files' provenance and checks table).
 """
@@ -15,7 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tools.reproduce import combine, dial, finetune, imitation, parsing
+from tools.reproduce import combine, dial, finetune, gather, imitation, parsing
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -26,6 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     parsing.add_parser(sub)
     dial.add_parser(sub)
     combine.add_parser(sub)
+    gather.add_parser(sub)
     args = parser.parse_args(argv)
     args.argv = argv
     return args.func(args)

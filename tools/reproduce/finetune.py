@@ -234,9 +234,7 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
         print(f"finetuning {out}", flush=True)
         with open(out / "finetune.log", "w") as log:
             subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT)
-    keys = ["frames", *curve_keys(task_labels(setting))]
-    with open(out / "run" / "curve.csv", newline="") as handle:
-        curve = [{key: round(float(row[key]), 4) for key in keys} for row in csv.DictReader(handle)]
+    curve = read_curve(out / "run" / "curve.csv", task_labels(setting))
     return {
         "method": method.name, "reward": reward, "seed": seed, "command": shown,
         "clone_commands": [run.command for run in clones],
@@ -255,6 +253,13 @@ def task_labels(setting: Setting) -> list[str]:
 def curve_keys(labels: list[str]) -> list[str]:
     """The learning-curve entries a study reports: mean return and success, overall and per task."""
     return ["mean_return", "success", *(f"success[{label}]" for label in labels)]
+
+
+def read_curve(path: Path, labels: list[str]) -> list[dict[str, float]]:
+    """An `ocn-finetune` curve.csv as rows of env frames and the entries a study reports (`curve_keys`)."""
+    keys = ["frames", *curve_keys(labels)]
+    with open(path, newline="") as handle:
+        return [{key: round(float(row[key]), 4) for key in keys} for row in csv.DictReader(handle)]
 
 
 def at_budget(curve: list[dict[str, float]], labels: list[str]) -> dict[str, float]:
