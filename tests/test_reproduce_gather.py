@@ -56,7 +56,7 @@ def test_gather_writes_the_study_of_hand_made_runs(runs, tmp_path):
     assert (tmp_path / "finetune_hand.png").stat().st_size > 10_000
 
 
-def test_gather_refuses_unfinished_duplicated_and_unlike_runs(runs, ocn_checkpoint, tmp_path, capsys):
+def test_gather_refuses_unfinished_duplicated_and_unlike_runs(runs, ocn_checkpoint, tmp_path):
     def refused(*folders: Path) -> str:
         with pytest.raises(SystemExit) as raised:
             reproduce(["gather", *map(str, folders), "--name", "x", "--results", str(tmp_path / "results")])
@@ -69,7 +69,8 @@ def test_gather_refuses_unfinished_duplicated_and_unlike_runs(runs, ocn_checkpoi
                                                  "finished ocn-finetune --out?")
     copy = tmp_path / "copy"
     shutil.copytree(runs["ocn1"], copy)
-    assert f"{runs['ocn1']} and {copy} are both the OCN run with sparse reward and seed 1" in refused(runs["ocn1"], copy)
+    duplicated = f"{runs['ocn1']} and {copy} are both the OCN run with sparse reward and seed 1"
+    assert duplicated in refused(runs["ocn1"], copy)
     other_tasks = finetuned(tmp_path / "adc", ocn_checkpoint, 3, tasks="ADC")
     assert "the runs differ in tasks" in refused(runs["ocn1"], other_tasks)
     assert not (tmp_path / "results").exists()
