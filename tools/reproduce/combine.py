@@ -48,13 +48,14 @@ def load_study(path: Path) -> dict[str, Any]:
     return result
 
 
-def same_recipe(recipes: dict[Path, dict[str, Any]], keys: tuple[str, ...]) -> dict[str, Any]:
-    """The recipe the files share (the first file's values of `keys`); files that differ in any of
-    them are refused, naming the setting and each file's value."""
+def same_recipe(recipes: dict[Path, dict[str, Any]], keys: tuple[str, ...], command: str = "ocn-reproduce combine",
+                sources: str = "files") -> dict[str, Any]:
+    """The recipe the files (or run folders: `sources`) share, the first one's values of `keys`; sources
+    that differ in any of them are refused by `command`, naming the setting and each source's value."""
     for key in keys:
         values = {path: recipe.get(key) for path, recipe in recipes.items()}
         if len({json.dumps(value) for value in values.values()}) > 1:
-            raise SystemExit(f"ocn-reproduce combine: the files differ in {key}: {_listing(values)}")
+            raise SystemExit(f"{command}: the {sources} differ in {key}: {_listing(values)}")
     return {key: next(iter(recipes.values())).get(key) for key in keys}
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from tools.reproduce import finetune
+from tools.reproduce.combine import same_recipe
 from tools.reproduce.finetune import FINAL_ROWS, at_budget, budget_table, read_curve, summarise
 from tools.reproduce.report import origin_words, provenance, write_result_files
 
@@ -56,11 +57,7 @@ def read_run(folder: Path) -> dict[str, Any]:
 def gather(folders: list[Path]) -> dict[str, Any]:
     """The study of the runs in `folders` (without this invocation's provenance)."""
     runs = [read_run(folder) for folder in folders]
-    for key in SHARED:
-        values = {run["folder"]: run["summary"][key] for run in runs}
-        if len({json.dumps(value, sort_keys=True) for value in values.values()}) > 1:
-            listing = "; ".join(f"{folder}: {value}" for folder, value in values.items())
-            raise SystemExit(f"ocn-reproduce gather: the runs differ in {key}: {listing}")
+    shared = same_recipe({run["folder"]: run["summary"] for run in runs}, SHARED, "ocn-reproduce gather", "runs")
     seen: dict[tuple[str, str, int], str] = {}
     for run in runs:
         key = (run["method"], run["reward"], run["seed"])
@@ -70,7 +67,7 @@ def gather(folders: list[Path]) -> dict[str, Any]:
         seen[key] = run["folder"]
     methods = tuple(method for method in finetune.METHODS if any(run["method"] == method.name for run in runs))
     labels = runs[0]["labels"]
-    return {"labels": labels, "shared": {key: runs[0]["summary"][key] for key in SHARED},
+    return {"labels": labels, "shared": shared,
             "methods": [method.name for method in methods],
             "summary": summarise(runs, labels, methods), "runs": runs}
 
