@@ -54,7 +54,7 @@ def same_recipe(recipes: dict[Path, dict[str, Any]], keys: tuple[str, ...], comm
     that differ in any of them are refused by `command`, naming the setting and each source's value."""
     for key in keys:
         values = {path: recipe.get(key) for path, recipe in recipes.items()}
-        if len({json.dumps(value) for value in values.values()}) > 1:
+        if len({json.dumps(value, sort_keys=True) for value in values.values()}) > 1:
             raise SystemExit(f"{command}: the {sources} differ in {key}: {_listing(values)}")
     return {key: next(iter(recipes.values())).get(key) for key in keys}
 
