@@ -21,10 +21,11 @@ from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.configs.types import FeatureType
 from lerobot.datasets.io_utils import load_episodes
 from lerobot.optim import AdamConfig, AdamWConfig
-from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
+from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig, LRSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from ocn_data.packed_view import PACKED_ACTION, PACKED_KEYS, PACKED_LENGTH, PACKED_STATE
+from policies.schedules import StepDecaySchedulerConfig
 
 # Encoders of Craft's compact state (see policies/ocn/encoders.py); "identity" takes float states as they
 # are (standardised); "dial_keys" reads Dial's raw state and adds each key's log distance.
@@ -34,7 +35,7 @@ OBS_ENCODERS = (*RAW_STATE_ENCODERS, "identity")
 ACTION_TYPES = ("discrete", "continuous")
 WINDOW_STARTS = ("episode", "any", "packed")
 INFERENCE_MODES = ("sample", "greedy")
-LR_SCHEDULES = ("constant", "cosine")
+LR_SCHEDULES = ("constant", "cosine", "step")
 PAD_KEYS = (f"{ACTION}_is_pad", f"{OBS_STATE}_is_pad")
 
 
@@ -107,7 +108,12 @@ class SequenceConfig(PreTrainedConfig):
     # "constant" is the paper's Adam at a fixed lr; "cosine" anneals every parameter group's lr to 0
     # over `lerobot-train --steps` (no warm-up). On S1, cosine from step 0 keeps OCN's options from
     # splitting (results/imitation_s1_lr_schedule): use it to continue a trained model, if at all.
+    # "step" keeps the lr until step `lr_decay_step`, then multiplies it by `lr_decay_factor`: on Dial,
+    # memoryless options split at 1e-3 and one seed collapsed there after 3,500 steps, while 1e-4
+    # from step 3,000 kept its split (results/dial_memoryless).
     lr_schedule: str = "constant"
+    lr_decay_step: int = 0
+    lr_decay_factor: float = 0.1
 
     # Empty means "derive from obs_encoder and action_type" (see `__post_init__`).
     normalization_mapping: dict[str, NormalizationMode] = field(default_factory=dict)
@@ -119,6 +125,11 @@ class SequenceConfig(PreTrainedConfig):
         check_choice("window_start", self.window_start, WINDOW_STARTS)
         check_choice("inference_mode", self.inference_mode, INFERENCE_MODES)
         check_choice("lr_schedule", self.lr_schedule, LR_SCHEDULES)
+        if self.lr_schedule == "step" and (self.lr_decay_step < 1 or not 0 < self.lr_decay_factor < 1):
+            raise ValueError(
+                "lr_schedule='step' needs lr_decay_step >= 1 and 0 < lr_decay_factor < 1, got "
+                f"{self.lr_decay_step} and {self.lr_decay_factor}."
+            )
         if self.window_size < 1:
             raise ValueError(f"window_size must be >= 1, got {self.window_size}.")
         if self.optimizer_weight_decay < 0:
@@ -172,8 +183,12 @@ class SequenceConfig(PreTrainedConfig):
             )
         return AdamConfig(lr=self.optimizer_lr, grad_clip_norm=self.optimizer_grad_clip_norm)
 
-    def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:
-        return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=0) if self.lr_schedule == "cosine" else None
+    def get_scheduler_preset(self) -> LRSchedulerConfig | None:
+        if self.lr_schedule == "cosine":
+            return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=0)
+        if self.lr_schedule == "step":
+            return StepDecaySchedulerConfig(decay_step=self.lr_decay_step, factor=self.lr_decay_factor)
+        return None
 
     def validate_features(self) -> None:
         state = (self.input_features or {}).get(OBS_STATE)

@@ -144,40 +144,53 @@ def test_ocn_reproduce_dial_help_lists_its_options(capsys):
     text = capsys.readouterr().out
     for option in ("--seeds", "--frames", "--envs", "--rewards", "--methods", "--tasks", "--rollouts", "--steps",
                    "--batch-size", "--episodes-per-task", "--workdir", "--results", "--first-seed", "--usage-balance",
-                   "--gamma"):
+                   "--gamma", "--lr-decay-step"):
         assert option in text, option
     # Dial's own discount, not the paper's 0.97.
     assert re.search(r"--gamma GAMMA\s+PPO's discount[^()]*\(ocn-finetune --gamma\)[^()]*\(default:\s+0\.995\)",
                      text)
 
 
-def test_dial_clones_train_with_the_dial_flags_and_finetune_on_the_pins(dial_dataset, tmp_path):
+def test_dial_clones_train_on_the_induction_recipe_and_finetune_on_the_pins(dial_dataset, tmp_path):
     import argparse
 
-    from tools.reproduce import dial
-    from tools.reproduce.finetune import Setting, finetune_command
-    from tools.reproduce.runs import TrainedRun, train_command
+    from tools.reproduce import build_parser, dial
+    from tools.reproduce.finetune import Setting, finetune_command, finetune_run
 
     assert dial.TWO_DIGIT_PINS.split(",") == ["12", "14", "18", "21", "24", "28", "41", "42", "48", "81", "82", "84"]
     assert [method.key for method in dial.METHODS] == ["ocn", "moe"]
-    args = argparse.Namespace(steps=2, batch_size=8, window_size=120, num_workers=0, threads=1,
-                              controller_lr_scale=1.0, frames=100, envs=4, entropy=0.001, gamma=dial.DIAL_GAMMA)
+    args = build_parser().parse_args([
+        "dial", "--steps", "2", "--batch-size", "4", "--num-workers", "0", "--lr-decay-step", "1", "--frames", "100",
+        "--envs", "4", "--workdir", str(tmp_path), "--results", str(tmp_path / "results")])
+    args.argv = None
+    # Both methods' clones really train on the recipe (lerobot-train accepts every flag), and only
+    # OCN's pays for hand-overs.
+    clones = {method.key: dial.clone(args, dial_dataset, method, 1) for method in dial.METHODS}
+    for key, clone in clones.items():
+        for flag in ("--policy.obs_encoder=dial_keys", "--policy.action_type=continuous",
+                     "--policy.skip_long_episodes=true", "--policy.n_options=4", "--policy.temperature=10.0",
+                     "--policy.option_memory=false", "--policy.log_std_max=0.0", "--policy.lr_schedule=step",
+                     "--policy.lr_decay_step=1", "--policy.usage_balance=1.0"):
+            assert flag in clone.command.split(), (key, flag)
+        config = OCNConfig.from_pretrained(clone.checkpoint)
+        assert (config.obs_encoder, config.option_memory, config.usage_balance) == ("dial_keys", False, 1.0)
+        assert config.termination_cost == (1.0 if key == "ocn" else 0.0)
+        assert config.hierarchy == key
     moe = dial.METHODS[1]
-    overrides = {"n_options": 4, "temperature": 10.0, **moe.overrides}
-    command = train_command(dial.train_settings(args), dial_dataset, DIAL_REPO_ID, tmp_path / "train", 1, overrides)
-    for flag in ("--policy.obs_encoder=identity", "--policy.action_type=continuous", "--policy.skip_long_episodes=true",
-                 "--policy.n_options=4", "--policy.temperature=10.0", "--policy.hierarchy=moe"):
-        assert flag in command, flag
-    clone = TrainedRun(tmp_path / "moe" / "pretrained_model", "", None)
     setting = Setting("dial", ((dial.DATA, dial.TWO_DIGIT_PINS),), dial.N_OPTIONS, dial.FINETUNE_PINS)
-    command = finetune_command(args, setting, moe, "sparse", 1, [clone], tmp_path / "out")
+    command = finetune_command(args, setting, moe, "sparse", 1, [clones["moe"]], tmp_path / "out")
     assert command[command.index("--tasks") + 1] == "124,481,842" and "--flat" not in command
-    assert command[command.index("--checkpoint") + 1] == str(clone.checkpoint)
+    assert command[command.index("--checkpoint") + 1] == str(clones["moe"].checkpoint)
     assert command[command.index("--gamma") + 1] == "0.995"  # Dial's discount, not the paper's 0.97
-    # Clones under the usage balance live beside the paper-loss ones.
-    paper, balanced = (argparse.Namespace(workdir=tmp_path, usage_balance=w) for w in (0.0, 1.0))
+    # The reproduction's own finetuning step, on the command line's settings, then its results files.
+    run = finetune_run(args, setting, dial.METHODS[0], "sparse", 1, [clones["ocn"]])
+    assert run["method"] == "OCN" and run["command"].startswith("ocn-finetune") and run["curve"]
+    result = dial.write_results(args, [], [run], 1, 1.0)
+    assert result["runs_finished"] == 1 and (tmp_path / "results" / "dial.md").exists()
+    # Clones under the usage balance (Dial's default) live beside the paper-loss ones.
+    paper = argparse.Namespace(workdir=tmp_path, usage_balance=0.0)
     assert dial.clone_dir(paper, moe, 2) == tmp_path / "clone" / "dial2" / "moe" / "seed2"
-    assert dial.clone_dir(balanced, moe, 2) == tmp_path / "clone" / "dial2" / "moe_usage_balance1.0" / "seed2"
+    assert dial.clone_dir(args, moe, 2) == tmp_path / "clone" / "dial2" / "moe_usage_balance1.0" / "seed2"
 
 
 def test_dial_checks_hold_only_where_ocn_meets_the_bars_and_beats_moe():

@@ -60,7 +60,7 @@ def trained(dial_dataset) -> Path:
         f"--steps={STEPS}", "--batch_size=4", "--num_workers=0", "--policy.n_options=2",
         *[f"--policy.{key}={value}" for key, value in DIAL.items()],
         f"--policy.window_size={WINDOW}", "--policy.skip_long_episodes=true", "--policy.inference_mode=greedy",
-        f"--output_dir={base / 'train'}",
+        "--policy.lr_schedule=step", f"--policy.lr_decay_step={STEPS - 1}", f"--output_dir={base / 'train'}",
         cwd=base,
     )
     return base / "train" / "checkpoints" / f"{STEPS:06d}" / "pretrained_model"
@@ -162,6 +162,10 @@ def test_lerobot_train_checkpoint_reloads_and_runs_in_lerobot_eval(trained):
     assert sorted(policy.config.tasks) == ["press 1, press 2", "press 2, press 1"]
     assert (policy.config.obs_encoder, policy.config.action_type, policy.config.n_options) == ("identity", "continuous", 2)
     assert policy.config.normalization_mapping == {"STATE": "MEAN_STD", "ACTION": "MEAN_STD"}
+    # lerobot-train built the step schedule from the preset and saved it where a resumed run reads it.
+    assert json.loads((trained / "train_config.json").read_text())["scheduler"]["type"] == "step_decay"
+    scheduler = json.loads((trained.parent / "training_state" / "scheduler_state.json").read_text())
+    assert scheduler["last_epoch"] == STEPS and scheduler["_last_lr"] == pytest.approx([1e-4, 1e-4])
     out = trained.parents[3] / "eval"
     # --eval.recording writes the rollout as a dataset instead of rendering videos, so no OpenGL is needed.
     run_cli(

@@ -37,8 +37,8 @@ FRACTIONS = {"nmi", "f1_tol0", "f1_tol1", "align_acc", "mean_success_rate", "mea
 
 def world_settings(world: str) -> list[str]:
     """`FIELD=VALUE` policy settings of a world's imitation study, under `--set`: Craft's S1 main variant
-    (3 options, T = 10), Dial's reproduction (`tools.reproduce.dial`: 4 options, T = 10, identity
-    encoder, continuous actions, long episodes cut)."""
+    (3 options, T = 10), Dial's base (`tools.reproduce.dial.DIAL_POLICY`: 4 options, T = 10, identity
+    encoder, continuous actions, long episodes cut; `ocn-reproduce dial` adds its induction recipe)."""
     if world == "dial":
         from tools.reproduce.dial import DIAL_POLICY, N_OPTIONS
 
@@ -298,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
                      help="with --supervise-options: the weight of the terminations' cross-entropy in the loss")
     run.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                      help="OCNConfig fields, over the world's imitation settings (Craft: n_options=3, "
-                          "temperature=10.0; Dial: those of ocn-reproduce dial) or over --init's config")
+                          "temperature=10.0; Dial: 4 options, T = 10 and DIAL_POLICY of tools/reproduce/dial.py) or over --init's config")
     draw = sub.add_parser("plot", help="draw the curves of several runs into one PNG and print when each split")
     draw.add_argument("curves", type=Path, nargs="+")
     draw.add_argument("--png", type=Path, required=True)

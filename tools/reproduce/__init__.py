@@ -19,7 +19,8 @@ import sys
 from tools.reproduce import combine, dial, finetune, gather, imitation, parsing
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """Every subcommand's command line."""
     parser = argparse.ArgumentParser(prog="ocn-reproduce", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="experiment", required=True)
     imitation.add_parser(sub)
@@ -28,7 +29,11 @@ def main(argv: list[str] | None = None) -> int:
     dial.add_parser(sub)
     combine.add_parser(sub)
     gather.add_parser(sub)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     args.argv = argv
     return args.func(args)
 

@@ -6,8 +6,11 @@ Records (or reuses) expert demonstrations of every 2-digit PIN over the paper's 
 `--episodes-per-task` each, with the recorder's DART noise), so that every task appears equally
 often in both splits and every ordered pair of digits is demonstrated. For each seed it clones OCN
 (4 options, one per digit of S; T = 10) and the MoE baseline (the same network with
-`hierarchy="moe"`) with `lerobot-train` (identity encoder, continuous actions, episode windows of
-`--window-size` frames whose few longer episodes train on their first window), scores each OCN
+`hierarchy="moe"`) with `lerobot-train` on the induction recipe of `results/dial_memoryless/`
+(`INDUCTION_RECIPE`: the `dial_keys` encoder, unit-std continuous actions, memoryless options, the
+usage balance, lr 1e-3 dropped tenfold at `--lr-decay-step`, episode windows of `--window-size`
+frames whose few longer episodes train on their first window; OCN alone adds the termination cost,
+which MoE, whose options last one step, has no use for), scores each OCN
 clone with `ocn-eval` on the validation split (F1@1, NMI, free-run success on the 2-digit PINs,
 option x digit table), then finetunes a fresh controller over each clone's frozen options with
 `ocn-finetune` on the 3-digit PINs of `--tasks`, under the sparse and the dense reward, every run
@@ -58,8 +61,15 @@ FINETUNE_PINS = "124,481,842"
 DIAL_GAMMA = 0.995
 _FINETUNED = {method.key: method for method in finetune.METHODS}
 METHODS = (_FINETUNED["ocn"], _FINETUNED["moe"])
-# `--policy.*` values every Dial clone trains with (README, "OCN on Dial").
+# `--policy.*` values every Dial model needs (README, "OCN on Dial"): `tools.fast_imitation`'s Dial defaults.
 DIAL_POLICY = {"obs_encoder": "identity", "action_type": "continuous", "skip_long_episodes": "true"}
+# The clones' recipe over DIAL_POLICY: the first under which induction split the digits, on two seeds
+# of three (results/dial_memoryless/), with the rate dropped before the collapse seen there at 1e-3.
+INDUCTION_RECIPE = {**DIAL_POLICY, "obs_encoder": "dial_keys", "log_std_min": 0.0, "log_std_max": 0.0,
+                    "option_memory": "false", "inference_mode": "greedy", "lr_schedule": "step"}
+# Settings of one method's clones only: the cost of hand-overs means nothing where every option lasts one step.
+METHOD_RECIPE = {"ocn": {"termination_cost": 1.0}, "moe": {}}
+USAGE_BALANCE = 1.0
 # Imitation scores of the OCN clones reported per seed, with their column names.
 SCORES = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "align", "nmi": "NMI",
           "mean_success_rate": "2-digit success", "diagonal_mean": "option x digit diagonal"}
@@ -68,7 +78,8 @@ SCORES = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "align", "nmi": "NM
 def train_settings(args: argparse.Namespace) -> TrainSettings:
     """The clones' `lerobot-train` settings from the command line."""
     return TrainSettings(args.steps, args.batch_size, args.window_size, args.num_workers, args.threads,
-                         {"controller_lr_scale": args.controller_lr_scale, **DIAL_POLICY})
+                         {"controller_lr_scale": args.controller_lr_scale, **INDUCTION_RECIPE,
+                          "lr_decay_step": args.lr_decay_step})
 
 
 def dial_data(args: argparse.Namespace) -> Path:
@@ -85,7 +96,7 @@ def clone_dir(args: argparse.Namespace, method: Method, seed: int) -> Path:
 def clone(args: argparse.Namespace, data: Path, method: Method, seed: int) -> TrainedRun:
     """The method's behaviour-cloned checkpoint for one seed (trained unless done before)."""
     overrides = {"n_options": N_OPTIONS, "temperature": 10.0, **(method.overrides or {}),
-                 **finetune.balance_override(args)}
+                 **METHOD_RECIPE[method.key], **finetune.balance_override(args)}
     return train_policy(train_settings(args), data, REPO_ID, clone_dir(args, method, seed), seed, overrides)
 
 
@@ -129,7 +140,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Demonstrations: the 12 two-digit PINs over 1, 2, 4, 8, "
         f"{settings['episodes_per_task']} each; clones: `lerobot-train`, {settings['steps']} steps of "
-        f"{settings['batch_size']} windows of {settings['window_size']} frames, {N_OPTIONS} options, T = 10; "
+        f"{settings['batch_size']} windows of {settings['window_size']} frames (lr 1e-3, 1e-4 from step "
+        f"{settings['lr_decay_step']}), {N_OPTIONS} options, T = 10, usage balance {settings['usage_balance']:g}; "
         f"imitation scores: `ocn-eval` on the validation split ({settings['rollouts']} env episodes per PIN and "
         f"per option-table cell); finetuning: `ocn-finetune`, {settings['frames']} env frames per run, "
         f"{settings['envs']} envs, entropy bonus {settings['entropy']:g}, discount {settings['gamma']:g}. "
@@ -227,5 +239,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         episodes_help="12 PINs x 500: 6000 demonstrations in all",
     )
     imitation.add_window_start_argument(parser)
+    parser.add_argument("--lr-decay-step", type=int, default=3000,
+                        help="lerobot-train step from which the clones train at a tenth of the rate")
     parser.add_argument("--results", type=Path, default=RESULTS)
-    parser.set_defaults(func=reproduce_dial)
+    # No settling phase: the recipe's termination cost is paid from the first step.
+    parser.set_defaults(func=reproduce_dial, usage_balance=USAGE_BALANCE, settle_steps=0)
