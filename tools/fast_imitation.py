@@ -298,7 +298,8 @@ def main(argv: list[str] | None = None) -> int:
                      help="with --supervise-options: the weight of the terminations' cross-entropy in the loss")
     run.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                      help="OCNConfig fields, over the world's imitation settings (Craft: n_options=3, "
-                          "temperature=10.0; Dial: 4 options, T = 10 and DIAL_POLICY of tools/reproduce/dial.py) or over --init's config")
+                          "temperature=10.0; Dial: 4 options, T = 10 and DIAL_POLICY of tools/reproduce/dial.py) "
+                          "or over --init's config")
     draw = sub.add_parser("plot", help="draw the curves of several runs into one PNG and print when each split")
     draw.add_argument("curves", type=Path, nargs="+")
     draw.add_argument("--png", type=Path, required=True)
