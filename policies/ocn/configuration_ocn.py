@@ -61,7 +61,7 @@ class OCNConfig(SequenceConfig):
     # targets within a few steps, and the options stop splitting by digit); Craft keeps the default.
     # Measured on Dial (results/dial_memoryless/): with `dial_keys`, a unit std, the usage balance and
     # termination_cost=1, memoryless options are the first that induction splits by digit from
-    # scratch (on two of three seeds); without the cost they hand over at most steps and do not.
+    # scratch (on two of five seeds); without the cost they hand over at most steps and do not.
     option_memory: bool = True
     # Training-time probability, per step and window row, that e_t is forced to 1 (0: never, the
     # paper): the controller chooses again and the options restart mid-subtask. A regulariser for the
