@@ -64,7 +64,7 @@ METHODS = (_FINETUNED["ocn"], _FINETUNED["moe"])
 # `--policy.*` values every Dial model needs (README, "OCN on Dial"): `tools.fast_imitation`'s Dial defaults.
 DIAL_POLICY = {"obs_encoder": "identity", "action_type": "continuous", "skip_long_episodes": "true"}
 # The clones' recipe over DIAL_POLICY: the first under which induction split the digits, on two seeds
-# of three (results/dial_memoryless/), with the rate dropped before the collapse seen there at 1e-3.
+# of five (results/dial_memoryless/), with the rate dropped before the collapse seen there at 1e-3.
 INDUCTION_RECIPE = {**DIAL_POLICY, "obs_encoder": "dial_keys", "log_std_min": 0.0, "log_std_max": 0.0,
                     "option_memory": "false", "inference_mode": "greedy", "lr_schedule": "step"}
 # Settings of one method's clones only: the cost of hand-overs means nothing where every option lasts one step.
