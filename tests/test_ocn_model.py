@@ -980,16 +980,21 @@ def test_weight_decay_makes_the_preset_adamw_whose_step_shrinks_every_weight_by_
         make_policy(optimizer_weight_decay=-0.1)
 
 
-def test_cosine_schedule_anneals_every_group_to_zero_keeping_the_controller_slower():
-    assert make_policy().config.get_scheduler_preset() is None
-    policy = make_policy(controller_lr_scale=0.1, lr_schedule="cosine")
+def scheduled_lrs(policy, steps: int) -> list[list[float]]:
+    """Each parameter group's lr at every step of `steps` optimizer steps under the policy's presets."""
     optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
-    scheduler = policy.config.get_scheduler_preset().build(optimizer, num_training_steps=100)
+    scheduler = policy.config.get_scheduler_preset().build(optimizer, num_training_steps=steps)
     seen = []
-    for _ in range(100):
+    for _ in range(steps):
         seen.append([group["lr"] for group in optimizer.param_groups])
         optimizer.step()
         scheduler.step()
+    return seen
+
+
+def test_cosine_schedule_anneals_every_group_to_zero_keeping_the_controller_slower():
+    assert make_policy().config.get_scheduler_preset() is None
+    seen = scheduled_lrs(make_policy(controller_lr_scale=0.1, lr_schedule="cosine"), 100)
     assert seen[0] == pytest.approx([1e-3, 1e-4])
     assert seen[50] == pytest.approx([5e-4, 5e-5])
     assert seen[99][0] < 1e-6 and seen[99][1] < 1e-7
@@ -997,24 +1002,17 @@ def test_cosine_schedule_anneals_every_group_to_zero_keeping_the_controller_slow
         make_policy(lr_schedule="linear")
 
 
-
 def test_step_schedule_drops_every_group_by_its_factor_at_the_decay_step():
     policy = make_policy(controller_lr_scale=0.1, lr_schedule="step", lr_decay_step=3, lr_decay_factor=0.1)
-    preset = policy.config.get_scheduler_preset()
-    assert preset.type == "step_decay"
-    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
-    scheduler = preset.build(optimizer, num_training_steps=6)
-    seen = []
-    for _ in range(6):
-        seen.append([group["lr"] for group in optimizer.param_groups])
-        optimizer.step()
-        scheduler.step()
+    assert policy.config.get_scheduler_preset().type == "step_decay"
+    seen = scheduled_lrs(policy, 6)
     assert seen[:3] == [pytest.approx([1e-3, 1e-4])] * 3
     assert seen[3:] == [pytest.approx([1e-4, 1e-5])] * 3
     with pytest.raises(ValueError, match="lr_decay_step >= 1 and 0 < lr_decay_factor < 1, got 0 and 0.1"):
         make_policy(lr_schedule="step")
     with pytest.raises(ValueError, match="got 100 and 1.5"):
         make_policy(lr_schedule="step", lr_decay_step=100, lr_decay_factor=1.5)
+
 
 # ---- MoE baseline (hierarchy="moe") ----------------------------------------------------------------
 
