@@ -23,7 +23,7 @@ from envs.dial import DialBatch, task_description
 from policies.ocn import OCNConfig, make_ocn_pre_post_processors
 from test_ocn_finetune import assert_refused, decisions_match_frames, lerobot_eval_rollout, save_variant
 from tools.dial_rollouts import DIAL_WORLD
-from tools.episode_parsing import load_ocn, load_policy
+from tools.episode_parsing import load_ocn, load_policy, validation_nll
 from tools.ocn_finetune import main, merge_option_pools, save_checkpoint
 from tools.ppo import Acting, collect
 from conftest import DIAL_REPO_ID
@@ -144,7 +144,7 @@ def test_ocn_reproduce_dial_help_lists_its_options(capsys):
     text = capsys.readouterr().out
     for option in ("--seeds", "--frames", "--envs", "--rewards", "--methods", "--tasks", "--rollouts", "--steps",
                    "--batch-size", "--episodes-per-task", "--workdir", "--results", "--first-seed", "--usage-balance",
-                   "--gamma", "--lr-decay-step"):
+                   "--gamma", "--lr-decay-step", "--restarts", "--select-step"):
         assert option in text, option
     # Dial's own discount, not the paper's 0.97.
     assert re.search(r"--gamma GAMMA\s+PPO's discount[^()]*\(ocn-finetune --gamma\)[^()]*\(default:\s+0\.995\)",
@@ -161,11 +161,13 @@ def test_dial_clones_train_on_the_induction_recipe_and_finetune_on_the_pins(dial
     assert [method.key for method in dial.METHODS] == ["ocn", "moe"]
     args = build_parser().parse_args([
         "dial", "--steps", "2", "--batch-size", "4", "--num-workers", "0", "--lr-decay-step", "1", "--frames", "100",
-        "--envs", "4", "--workdir", str(tmp_path), "--results", str(tmp_path / "results")])
+        "--envs", "4", "--restarts", "2", "--select-step", "1", "--workdir", str(tmp_path),
+        "--results", str(tmp_path / "results")])
     args.argv = None
     # Both methods' clones really train on the recipe (lerobot-train accepts every flag), and only
     # OCN's pays for hand-overs.
-    clones = {method.key: dial.clone(args, dial_dataset, method, 1) for method in dial.METHODS}
+    chosen = {method.key: dial.clone(args, dial_dataset, method, 1) for method in dial.METHODS}
+    clones = {key: trained for key, (trained, _) in chosen.items()}
     for key, clone in clones.items():
         for flag in ("--policy.obs_encoder=dial_keys", "--policy.action_type=continuous",
                      "--policy.skip_long_episodes=true", "--policy.n_options=4", "--policy.temperature=10.0",
@@ -176,6 +178,36 @@ def test_dial_clones_train_on_the_induction_recipe_and_finetune_on_the_pins(dial
         assert (config.obs_encoder, config.option_memory, config.usage_balance) == ("dial_keys", False, 1.0)
         assert config.termination_cost == (1.0 if key == "ocn" else 0.0)
         assert config.hierarchy == key
+    # Each clone is the restart, of seeds 2 and 3, whose step-1 checkpoint fits the validation
+    # demonstrations best; it alone trains on to step 2.
+    ocn_choice = chosen["ocn"][1]
+    assert [r["seed"] for r in ocn_choice["restarts"]] == [2, 3] and ocn_choice["select_step"] == 1
+    nlls = [r["val_nll"] for r in ocn_choice["restarts"]]
+    assert ocn_choice["chosen"] == int(np.argmin(nlls)) and nlls[0] != nlls[1]
+    assert f"--seed={ocn_choice['chosen_seed']}" in clones["ocn"].command.split()
+    folder = dial.clone_dir(args, dial.METHODS[0], 1)
+    other = 1 - ocn_choice["chosen"]
+    steps = [json.loads((folder / f"restart{j}" / "train" / "checkpoints" / "last" / "training_state" /
+                         "training_step.json").read_text())["step"] for j in (ocn_choice["chosen"], other)]
+    assert steps == [2, 1]
+    loser = folder / f"restart{other}" / "train" / "checkpoints" / "last" / "pretrained_model"
+    assert validation_nll(loser, dial_dataset) == pytest.approx(nlls[other], rel=1e-6)
+    assert json.loads((folder / "restarts.json").read_text()) == ocn_choice
+    # Asked again, the clone is the same choice, trained no further.
+    logs = [(folder / f"restart{j}" / "train.log").read_text() for j in (0, 1)]
+    assert dial.clone(args, dial_dataset, dial.METHODS[0], 1) == chosen["ocn"]
+    assert [(folder / f"restart{j}" / "train.log").read_text() for j in (0, 1)] == logs
+    for restarts, step, message in (("2", "0", r"chosen at step 0 \(--select-step\), which must lie in 1..2"),
+                                    ("2", "3", r"chosen at step 3 \(--select-step\), which must lie in 1..2"),
+                                    ("0", "1", "--restarts 0: a run needs at least one")):
+        bad = build_parser().parse_args(["dial", "--steps", "2", "--restarts", restarts, "--select-step", step,
+                                         "--workdir", str(tmp_path / "bad")])
+        with pytest.raises(SystemExit, match=message):
+            dial.clone(bad, dial_dataset, dial.METHODS[0], 1)
+        bad.argv = None
+        with pytest.raises(SystemExit, match=message):  # before recording anything
+            bad.func(bad)
+    assert not (tmp_path / "bad").exists()
     moe = dial.METHODS[1]
     setting = Setting("dial", ((dial.DATA, dial.TWO_DIGIT_PINS),), dial.N_OPTIONS, dial.FINETUNE_PINS)
     command = finetune_command(args, setting, moe, "sparse", 1, [clones["moe"]], tmp_path / "out")

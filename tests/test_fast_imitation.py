@@ -18,6 +18,8 @@ from tools.fast_imitation import (
     option_labels,
     parse_overrides,
     peak_table,
+    restart_gain,
+    restart_table,
     split_table,
 )
 
@@ -246,3 +248,31 @@ def test_plot_draws_the_chosen_metrics_and_names_a_missing_one(tmp_path, capsys)
         main(["plot", str(without), "--png", str(tmp_path / "x.png"), "--metrics", "mean_success_rate"])
     with pytest.raises(SystemExit, match="no mean_success_rate"):
         main(["plot", str(without), "--png", str(tmp_path / "x.png"), "--peak", "mean_success_rate"])
+
+
+def test_restart_table_orders_runs_by_validation_nll_at_the_choice(tmp_path, capsys):
+    paths = []
+    for name, nlls, nmi in (("likely", (9.0, 8.5), 0.6), ("unlikely", (8.9, 8.7), 0.2), ("middle", (9.1, 8.6), 0.7)):
+        path = tmp_path / f"{name}.json"
+        curve = [{"step": 1000 * (k + 1), "val_nll": nll, "nmi": nmi, "f1_tol1": 0.9, "align_acc": 0.8}
+                 for k, nll in enumerate(nlls)]
+        path.write_text(json.dumps({"settings": {"batch_size": 32}, "curve": curve}))
+        paths.append(path)
+    # Ordered by the NLL at the chosen step, not at the first one, with the scores of each run's last point
+    # or of the step asked for.
+    assert restart_table(paths[::-1], 2000, ("nmi",)).splitlines()[2:] == [
+        "| likely | 8.500 | 2000 | 0.600 |", "| middle | 8.600 | 2000 | 0.700 |", "| unlikely | 8.700 | 2000 | 0.200 |"]
+    assert restart_table(paths, 1000, ("nmi",)).splitlines()[2].startswith("| unlikely | 8.900 |")
+    assert restart_table(paths, 2000, ("nmi",), score_step=1000).splitlines()[2] == "| likely | 8.500 | 1000 | 0.600 |"
+    # Pairs {likely, unlikely}, {likely, middle}, {middle, unlikely}: the likeliest of each scores 0.6, 0.6, 0.7.
+    gain = restart_gain(paths, 2000, "nmi", 2)
+    assert gain == pytest.approx({"sets": 3, "one": 0.5, "likeliest": 1.9 / 3, "best": 2.0 / 3})
+    assert restart_gain(paths, 2000, "val_nll", 2)["best"] == pytest.approx((8.5 + 8.5 + 8.6) / 3)  # the least
+    assert main(["plot", *map(str, paths), "--png", str(tmp_path / "r.png"), "--select-step", "2000",
+                 "--restarts", "2", "--metrics", "nmi"]) == 0
+    assert capsys.readouterr().out.rstrip().endswith(
+        "nmi over all 3 sets of 2: one restart 0.500, the likeliest at step 2000 0.633, the best 0.667")
+    with pytest.raises(SystemExit, match="likely.json has no evaluation at step 1500"):
+        restart_table(paths, 1500)
+    with pytest.raises(SystemExit, match="--restarts 4: choose among 1..3 curve files"):
+        restart_gain(paths, 2000, "nmi", 4)

@@ -34,11 +34,17 @@ def test_reuse_refuses_other_settings_and_fewer_steps(tmp_path):
         check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=9000) + " --seed=2")
 
 
-def test_a_run_is_extended_to_more_steps_only_under_a_constant_learning_rate(tmp_path):
+def test_a_run_is_extended_to_more_steps_only_under_a_rate_that_ignores_the_run_length(tmp_path):
     _write_record(tmp_path / "run", COMMAND.format(root="/data", steps=5000))
     check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=20000))
+    # A rate dropped at a fixed step is the same over the first steps of a longer run.
+    step = " --policy.lr_schedule=step --policy.lr_decay_step=3000"
+    _write_record(tmp_path / "step", COMMAND.format(root="/data", steps=2000) + step)
+    check_reusable(tmp_path / "step", COMMAND.format(root="/data", steps=5000) + step)
+    with pytest.raises(SystemExit, match="trained with other settings"):
+        check_reusable(tmp_path / "step", COMMAND.format(root="/data", steps=5000) + step.replace("3000", "4000"))
     _write_record(tmp_path / "cosine", COMMAND.format(root="/data", steps=5000) + " --policy.lr_schedule=cosine")
-    with pytest.raises(SystemExit, match="only under a constant learning rate"):
+    with pytest.raises(SystemExit, match="only under a learning-rate schedule of constant or step"):
         check_reusable(tmp_path / "cosine", COMMAND.format(root="/data", steps=20000) + " --policy.lr_schedule=cosine")
 
 

@@ -5,7 +5,8 @@ Checkpoints load with `load_policy` (any registered type) or `load_ocn` (tools t
 options). `parse_episodes` gives OCN's per-step hierarchy of whole episodes; `segment_episodes`
 gives every model type's parse in the one form the shared parsing metrics read (a `Segmentation`
 per episode), through that type's entry in `PARSERS`: a new model type adds an entry there.
-`choose_boundary_threshold` tunes OMPN's count-free read-out on training episodes.
+`choose_boundary_threshold` tunes OMPN's count-free read-out on training episodes;
+`validation_nll` scores a checkpoint's fit to held-out demonstrations, labels unread.
 """
 
 from __future__ import annotations
@@ -241,6 +242,17 @@ def action_nll(parses: Sequence[Segmentation]) -> float:
     if missing:
         raise ValueError(f"{missing} of {len(parses)} parses carry no per-step action log-likelihood.")
     return -float(np.concatenate([parse.action_log_prob for parse in parses]).mean())
+
+
+def validation_nll(checkpoint: Path, root: Path, max_episodes: int | None = None) -> float:
+    """`action_nll` of a checkpoint on the validation split of the dataset at `root` (its first
+    `max_episodes` episodes): how well it clones held-out demonstrations, read without their subtask
+    labels, so that it may choose between runs without looking at the scores it is judged on."""
+    from ocn_data.episodes_table import load_episodes, split_episodes
+
+    policy, preprocessor, _ = load_policy(checkpoint)
+    episodes = load_episodes(root, split_episodes(root, "val"), max_episodes)
+    return action_nll(segment_episodes(policy, preprocessor, episodes))
 
 
 def segment_episodes(

@@ -33,6 +33,8 @@ TRAINING_STATS = ("nll", "mean_end", "usage_imbalance", "choice_ce", "terminatio
                   "mean_end_elsewhere")
 # Curve metrics that are fractions, drawn on a 0-1 axis (the others, such as nll, on their own range).
 FRACTIONS = {"nmi", "f1_tol0", "f1_tol1", "align_acc", "mean_success_rate", "mean_end"}
+# Curve metrics where lower is better (the best of several runs is their least).
+LOWER_IS_BETTER = {"nll", "val_nll"}
 
 
 def world_settings(world: str) -> list[str]:
@@ -220,10 +222,61 @@ def peak_table(paths: list[Path], peak: str, metrics: tuple[str, ...] = CURVE_ME
     return "\n".join(lines)
 
 
+def _point(path: Path, curve: list[dict[str, Any]], step: int | None) -> dict[str, Any]:
+    """The curve's evaluation at `step` (its last one for None)."""
+    if step is None:
+        return curve[-1]
+    at = next((point for point in curve if point["step"] == step), None)
+    if at is None:
+        raise SystemExit(f"{path} has no evaluation at step {step}.")
+    return at
+
+
+def restart_rows(paths: list[Path], select_step: int,
+                 score_step: int | None) -> list[tuple[float, str, dict[str, Any]]]:
+    """Per curve file, its validation NLL at `select_step`, its name and its point at `score_step`
+    (the last one for None), ordered by that NLL: the first is the restart `runs.Restarts` keeps."""
+    rows = []
+    for path in paths:
+        curve = json.loads(path.read_text())["curve"]
+        rows.append((_point(path, curve, select_step)["val_nll"], path.stem, _point(path, curve, score_step)))
+    return sorted(rows, key=lambda row: row[0])
+
+
+def restart_table(paths: list[Path], select_step: int, metrics: tuple[str, ...] = CURVE_METRICS,
+                  score_step: int | None = None) -> str:
+    """Markdown: the curve files as restarts of one recipe, ordered by their validation NLL at
+    `select_step` (the first row is the one `ocn-reproduce dial` keeps), with `metrics` at
+    `score_step` (each one's last point for None): whether the likeliest restarts parse best."""
+    lines = [f"| run | val NLL at step {select_step} | scored at step | " + " | ".join(metrics) + " |",
+             "|---|---|---|" + "---|" * len(metrics)]
+    for nll, name, point in restart_rows(paths, select_step, score_step):
+        scores = " | ".join(f"{point[metric]:.3f}" for metric in metrics)
+        lines.append(f"| {name} | {nll:.3f} | {point['step']} | {scores} |")
+    return "\n".join(lines)
+
+
+def restart_gain(paths: list[Path], select_step: int, metric: str, count: int,
+                 score_step: int | None = None) -> dict[str, float]:
+    """What choosing among `count` restarts by validation NLL is worth, over every set of `count` of
+    the curve files: the mean `metric` (at `score_step`) of one restart, of the likeliest of the set,
+    and of the set's best by `metric` itself (for a parsing score, which reads the labels, the ceiling of
+    any choice)."""
+    from itertools import combinations
+
+    rows = restart_rows(paths, select_step, score_step)
+    if not 1 <= count <= len(rows):
+        raise SystemExit(f"--restarts {count}: choose among 1..{len(rows)} curve files.")
+    sets = list(combinations([point[metric] for _, _, point in rows], count))  # each set in NLL order
+    return {"sets": len(sets), "one": float(np.mean([point[metric] for _, _, point in rows])),
+            "likeliest": float(np.mean([values[0] for values in sets])),
+            "best": float(np.mean([(min if metric in LOWER_IS_BETTER else max)(values) for values in sets]))}
+
+
 def plot(args: argparse.Namespace) -> None:
     """One panel per metric of `--metrics`, one line per curve file, labelled by the file's stem,
     against training steps or (`--x episodes`) the episodes drawn, which compares runs of different
-    batch sizes; prints `split_table`."""
+    batch sizes; prints `split_table` (and `peak_table`, `restart_table` when asked)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -255,6 +308,13 @@ def plot(args: argparse.Namespace) -> None:
     if args.peak:
         print()
         print(peak_table(args.curves, args.peak, metrics))
+    if args.select_step:
+        print()
+        print(restart_table(args.curves, args.select_step, metrics, args.score_step))
+        for metric in metrics:
+            gain = restart_gain(args.curves, args.select_step, metric, args.restarts, args.score_step)
+            print(f"\n{metric} over all {gain['sets']} sets of {args.restarts}: one restart {gain['one']:.3f}, the "
+                  f"likeliest at step {args.select_step} {gain['likeliest']:.3f}, the best {gain['best']:.3f}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -312,6 +372,11 @@ def main(argv: list[str] | None = None) -> int:
                       help="the NMI at which the printed table counts the options as split")
     draw.add_argument("--peak", metavar="METRIC",
                       help="also print each run's point where this curve metric is highest, with --metrics there")
+    draw.add_argument("--select-step", type=int,
+                      help="also print the runs as restarts ordered by their validation NLL at this step, with "
+                           "--metrics at --score-step, and what choosing the likeliest of --restarts runs is worth")
+    draw.add_argument("--score-step", type=int, help="with --select-step: the step scored (default: each run's last)")
+    draw.add_argument("--restarts", type=int, default=3, help="with --select-step: the restarts chosen among")
     args = parser.parse_args(argv)
     args.argv = argv
     if args.command == "train":

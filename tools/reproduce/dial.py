@@ -10,7 +10,11 @@ often in both splits and every ordered pair of digits is demonstrated. For each 
 (`INDUCTION_RECIPE`: the `dial_keys` encoder, unit-std continuous actions, memoryless options, the
 usage balance, lr 1e-3 dropped tenfold at `--lr-decay-step`, episode windows of `--window-size`
 frames whose few longer episodes train on their first window; OCN alone adds the termination cost,
-which MoE, whose options last one step, has no use for), scores each OCN
+which MoE, whose options last one step, has no use for). Each clone is the best of `--restarts`
+seeds: every restart trains `--select-step` steps, and the one whose actions fit the validation
+split's demonstrations best (lowest NLL; no digit label read) trains on to `--steps`
+(`runs.Restarts`), because the recipe splits the digits on some seeds only and the likeliest seeds
+were the splitting ones (results/dial_memoryless/). It scores each OCN
 clone with `ocn-eval` on the validation split (F1@1, NMI, free-run success on the 2-digit PINs,
 option x digit table), then finetunes a fresh controller over each clone's frozen options with
 `ocn-finetune` on the 3-digit PINs of `--tasks`, under the sparse and the dense reward, every run
@@ -43,11 +47,12 @@ from typing import Any
 import numpy as np
 
 from envs.dial.task import DEFAULT_DIGITS, parse_pin_list, pin_code
+from policies.ocn import OCNConfig
 from tools.bench import RESULTS
 from tools.reproduce import finetune, imitation
 from tools.reproduce.finetune import Method, Setting
 from tools.reproduce.report import checks_table, machine_words, provenance, train_time_words, write_result_files
-from tools.reproduce.runs import TrainedRun, TrainSettings, evaluate_run, record_dataset, train_policy
+from tools.reproduce.runs import Restarts, TrainedRun, TrainSettings, evaluate_run, record_dataset, train_best_restart
 
 DATA = "dial2"
 REPO_ID = f"local/{DATA}"
@@ -70,6 +75,8 @@ INDUCTION_RECIPE = {**DIAL_POLICY, "obs_encoder": "dial_keys", "log_std_min": 0.
 # Settings of one method's clones only: the cost of hand-overs means nothing where every option lasts one step.
 METHOD_RECIPE = {"ocn": {"termination_cost": 1.0}, "moe": {}}
 USAGE_BALANCE = 1.0
+# The clones' rate before and the factor after the drop (OCNConfig's defaults, which the recipe keeps).
+LR, DECAY = OCNConfig.optimizer_lr, OCNConfig.lr_decay_factor
 # Imitation scores of the OCN clones reported per seed, with their column names.
 SCORES = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "align", "nmi": "NMI",
           "mean_success_rate": "2-digit success", "diagonal_mean": "option x digit diagonal"}
@@ -93,11 +100,27 @@ def clone_dir(args: argparse.Namespace, method: Method, seed: int) -> Path:
     return args.workdir / "clone" / DATA / f"{method.key}{finetune.clone_study_suffix(args, method)}" / f"seed{seed}"
 
 
-def clone(args: argparse.Namespace, data: Path, method: Method, seed: int) -> TrainedRun:
-    """The method's behaviour-cloned checkpoint for one seed (trained unless done before)."""
+def clone(args: argparse.Namespace, data: Path, method: Method, seed: int) -> tuple[TrainedRun, dict[str, Any] | None]:
+    """The method's behaviour-cloned checkpoint for one seed, the best of its restarts (trained unless
+    done before), and the choice between them (None with one restart)."""
     overrides = {"n_options": N_OPTIONS, "temperature": 10.0, **(method.overrides or {}),
                  **METHOD_RECIPE[method.key], **finetune.balance_override(args)}
-    return train_policy(train_settings(args), data, REPO_ID, clone_dir(args, method, seed), seed, overrides)
+    return train_best_restart(train_settings(args), data, REPO_ID, clone_dir(args, method, seed), seed, overrides,
+                              restarts_of(args))
+
+
+def restarts_of(args: argparse.Namespace) -> Restarts:
+    """The restarts each clone is chosen from (`--restarts`, `--select-step`)."""
+    return Restarts(args.restarts, args.select_step)
+
+
+def restart_words(choice: dict[str, Any] | None) -> str:
+    """The imitation table's cell on a clone's restarts: the chosen seed, then each restart's
+    validation NLL at the choice."""
+    if choice is None:
+        return "one run"
+    nlls = ", ".join(f"{r['seed']}: {r['val_nll']:.3f}" for r in choice["restarts"])
+    return f"{choice['chosen_seed']} ({nlls})"
 
 
 def imitation_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -140,8 +163,9 @@ def markdown(result: dict[str, Any]) -> str:
         f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Demonstrations: the 12 two-digit PINs over 1, 2, 4, 8, "
         f"{settings['episodes_per_task']} each; clones: `lerobot-train`, {settings['steps']} steps of "
-        f"{settings['batch_size']} windows of {settings['window_size']} frames (lr 1e-3, 1e-4 from step "
-        f"{settings['lr_decay_step']}), {N_OPTIONS} options, T = 10, usage balance {settings['usage_balance']:g}; "
+        f"{settings['batch_size']} windows of {settings['window_size']} frames (lr {LR:g}, {LR * DECAY:g} from step "
+        f"{settings['lr_decay_step']}), {N_OPTIONS} options, T = 10, usage balance {settings['usage_balance']:g}, "
+        f"the best of {settings['restarts']} restarts by validation NLL at step {settings['select_step']}; "
         f"imitation scores: `ocn-eval` on the validation split ({settings['rollouts']} env episodes per PIN and "
         f"per option-table cell); finetuning: `ocn-finetune`, {settings['frames']} env frames per run, "
         f"{settings['envs']} envs, entropy bonus {settings['entropy']:g}, discount {settings['gamma']:g}. "
@@ -155,14 +179,15 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         "## Imitation: OCN clones on the validation split",
         "",
-        "| seed | " + " | ".join(SCORES.values()) + " | success per PIN | train s |",
-        "|---|" + "---|" * len(SCORES) + "---|---|",
+        "| seed | restart chosen (val NLL of each) | " + " | ".join(SCORES.values()) + " | success per PIN | train s |",
+        "|---|---|" + "---|" * len(SCORES) + "---|---|",
     ]
     for record in result["imitation"]:
         scores = record["scores"]
         per_pin = ", ".join(f"{pin} {rate:.2f}" for pin, rate in scores["success_rate"].items())
         cells = " | ".join(f"{scores[key]:.3f}" for key in SCORES)
-        lines.append(f"| {record['seed']} | {cells} | {per_pin} | {train_time_words(record)} |")
+        lines.append(f"| {record['seed']} | {restart_words(record['restarts'])} | {cells} | {per_pin} | "
+                     f"{train_time_words(record)} |")
     lines += [
         "",
         "## Finetuning at the budget",
@@ -205,6 +230,7 @@ def reproduce_dial(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     args.tasks = ",".join(pin_code(pin) for pin in parse_pin_list(args.tasks))
     methods = finetune.chosen_methods(args, METHODS)
+    restarts_of(args).check(args.steps)  # before the recording, which takes minutes
     setting = Setting("dial", ((DATA, TWO_DIGIT_PINS),), N_OPTIONS, args.tasks)
     data = dial_data(args)
     planned = len(methods) * len(args.rewards) * args.seeds
@@ -213,11 +239,11 @@ def reproduce_dial(args: argparse.Namespace) -> int:
     result: dict[str, Any] = {}
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         for method in methods:
-            trained = clone(args, data, method, seed)
+            trained, choice = clone(args, data, method, seed)
             if method.key == "ocn":
                 folder = clone_dir(args, method, seed)
                 imitated.append(evaluate_run(folder, trained, data, REPO_ID, args.rollouts,
-                                             {"method": method.name, "seed": seed}))
+                                             {"method": method.name, "seed": seed, "restarts": choice}))
             for reward in args.rewards:
                 runs.append(finetune.finetune_run(args, setting, method, reward, seed, [trained]))
                 result = write_results(args, imitated, runs, planned, time.perf_counter() - started)
@@ -241,6 +267,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     imitation.add_window_start_argument(parser)
     parser.add_argument("--lr-decay-step", type=int, default=3000,
                         help="lerobot-train step from which the clones train at a tenth of the rate")
+    parser.add_argument("--restarts", type=int, default=3,
+                        help="seeds tried per clone; the one with the lowest validation NLL at --select-step trains "
+                             "on (restart j of seed s trains with seed s * restarts + j)")
+    parser.add_argument("--select-step", type=int, default=2000,
+                        help="lerobot-train step at which the restarts of a clone are compared")
     parser.add_argument("--results", type=Path, default=RESULTS)
     # No settling phase: the recipe's termination cost is paid from the first step.
     parser.set_defaults(func=reproduce_dial, usage_balance=USAGE_BALANCE, settle_steps=0)

@@ -20,6 +20,9 @@ from tools.bench import machine
 from tools.reproduce.report import machine_words
 
 SAVE_EVERY = 1000  # lerobot-train checkpoints this often by default, so a stopped run resumes from its last one
+# OCNConfig.lr_schedule values whose rate at a step does not depend on the run's length: a run under
+# one of them may be extended to more steps (`check_reusable`).
+LENGTH_FREE_SCHEDULES = ("constant", "step")
 # Linux caps one command-line argument at 128 KiB; a train split listed in more goes through a file.
 MAX_SPLIT_ARGUMENT = 100_000
 
@@ -148,6 +151,17 @@ def split_argument(train: list[int], out: Path) -> str:
     return f"--config_path={path}"
 
 
+def run_command(
+    settings: TrainSettings, data: Path, repo_id: str, run_dir: Path, seed: int, overrides: dict[str, Any],
+    init: Path | None = None,
+) -> tuple[list[str], str]:
+    """The `lerobot-train` call of the run in `run_dir` (`train_command` on the view it trains on,
+    `training_data`), and its words as records show them, the train split's episodes elided."""
+    source = training_data(settings, data, repo_id, overrides, init)
+    command = train_command(settings, source, repo_id, run_dir / "train", seed, overrides, init)
+    return command, " ".join(["lerobot-train", *command[1:4], "--dataset.episodes=[<train split>]", *command[5:]])
+
+
 def train_policy(
     settings: TrainSettings, data: Path, repo_id: str, run_dir: Path, seed: int, overrides: dict[str, Any],
     init: Path | None = None,
@@ -155,13 +169,71 @@ def train_policy(
     """Train one run into `run_dir/train` (or finish or reuse it) and return its last checkpoint;
     `init`: a pretrained_model to train on instead of a fresh policy. `lerobot-train` reads the
     dataset's view that the policy trains on (`training_data`)."""
-    source = training_data(settings, data, repo_id, overrides, init)
-    command = train_command(settings, source, repo_id, run_dir / "train", seed, overrides, init)
-    shown = " ".join(["lerobot-train", *command[1:4], "--dataset.episodes=[<train split>]", *command[5:]])
+    command, shown = run_command(settings, data, repo_id, run_dir, seed, overrides, init)
     check_reusable(run_dir, shown)
     wall = train(settings, command, shown, run_dir)
     return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall, trained_on(run_dir),
                       timed_from_step(run_dir))
+
+
+@dataclass
+class Restarts:
+    """Several seeds for one run: `count` restarts train `select_step` steps each, and the one that
+    clones the validation split's demonstrations best (lowest `validation_nll`, over its first
+    `val_episodes` episodes; no subtask label read) trains on to the run's full steps. On Dial the
+    seeds whose options split the digits were the likeliest ones from step 2,000 on
+    (results/dial_memoryless/). Restart j of seed s trains with seed s * count + j, so the restarts of
+    different seeds never share one, and one restart is the seed itself."""
+
+    count: int = 1
+    select_step: int = 0
+    val_episodes: int = 600
+
+    def seeds(self, seed: int) -> list[int]:
+        return [seed * self.count + j for j in range(self.count)]
+
+    def check(self, steps: int) -> None:
+        """Refuse restarts that cannot be chosen in a run of `steps` steps, before anything trains."""
+        if self.count < 1:
+            raise SystemExit(f"--restarts {self.count}: a run needs at least one.")
+        if self.count > 1 and not 0 < self.select_step <= steps:
+            raise SystemExit(f"restarts are chosen at step {self.select_step} (--select-step), which must lie in "
+                             f"1..{steps} (--steps).")
+
+
+def train_best_restart(
+    settings: TrainSettings, data: Path, repo_id: str, run_dir: Path, seed: int, overrides: dict[str, Any],
+    restarts: Restarts,
+) -> tuple[TrainedRun, dict[str, Any] | None]:
+    """`train_policy` of the run in `run_dir`, or with several `restarts` the best of them trained to
+    the full steps in `run_dir/restart<j>`, with the choice (every restart's seed, command and
+    validation NLL) kept in `run_dir/restarts.json` and returned. A choice made by the same commands is
+    reused, so that an interrupted reproduction goes on training the chosen restart."""
+    restarts.check(settings.steps)
+    if restarts.count == 1:
+        return train_policy(settings, data, repo_id, run_dir, seed, overrides), None
+    early = replace(settings, steps=restarts.select_step)
+    folders = [run_dir / f"restart{j}" for j in range(restarts.count)]
+    commands = [run_command(early, data, repo_id, folder, restart_seed, overrides)[1]
+                for folder, restart_seed in zip(folders, restarts.seeds(seed), strict=True)]
+    record_path = run_dir / "restarts.json"
+    choice = json.loads(record_path.read_text()) if record_path.exists() else None
+    if choice is None or choice["val_episodes"] != restarts.val_episodes or len(choice["restarts"]) != len(commands) \
+            or not all(same_training(r["command"], c) for r, c in zip(choice["restarts"], commands, strict=True)):
+        from tools.episode_parsing import validation_nll
+
+        scored = []
+        for folder, restart_seed in zip(folders, restarts.seeds(seed), strict=True):
+            trained = train_policy(early, data, repo_id, folder, restart_seed, overrides)
+            scored.append({"seed": restart_seed, "command": trained.command,
+                           "val_nll": validation_nll(trained.checkpoint, data, restarts.val_episodes)})
+        best = min(range(len(scored)), key=lambda j: scored[j]["val_nll"])
+        choice = {"select_step": restarts.select_step, "val_episodes": restarts.val_episodes, "chosen": best,
+                  "chosen_seed": scored[best]["seed"], "restarts": scored}
+        run_dir.mkdir(parents=True, exist_ok=True)
+        record_path.write_text(json.dumps(choice, indent=2) + "\n")
+    best = choice["chosen"]
+    return train_policy(settings, data, repo_id, folders[best], choice["chosen_seed"], overrides), choice
 
 
 @dataclass
@@ -308,8 +380,9 @@ def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path
 
 def check_reusable(run_dir: Path, command: str) -> None:
     """Refuse to reuse a run that was trained by another command (other seed, overrides...). Other
-    steps are refused too, except more steps under a constant learning rate: training on from the
-    last checkpoint then is the longer run, so the run is extended rather than started over."""
+    steps are refused too, except more steps under a learning rate that does not depend on the run's
+    length (constant, or dropped at a fixed step): training on from the last checkpoint then is the
+    longer run, so the run is extended rather than started over."""
     record_path, command_path = run_dir / "record.json", run_dir / "train_command.txt"
     if command_path.exists():
         before = command_path.read_text().strip()
@@ -319,11 +392,11 @@ def check_reusable(run_dir: Path, command: str) -> None:
         return
     same = same_training(before, command)
     extends = _settings(before, "--steps=") == _settings(command, "--steps=") and _steps(before) < _steps(command)
-    if not (same or (extends and _argument(command, "--policy.lr_schedule=", "constant") == "constant")):
+    if not (same or (extends and _argument(command, "--policy.lr_schedule=", "constant") in LENGTH_FREE_SCHEDULES)):
         raise SystemExit(
             f"{run_dir} holds a run trained with other settings:\n  {before}\nwhile this reproduction "
             f"would run:\n  {command}\nMove that folder away or pass another --workdir (a run is extended to "
-            "more steps only under a constant learning rate)."
+            f"more steps only under a learning-rate schedule of {' or '.join(LENGTH_FREE_SCHEDULES)})."
         )
 
 
