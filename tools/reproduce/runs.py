@@ -180,10 +180,10 @@ def train_policy(
 class Restarts:
     """Several seeds for one run: `count` restarts train `select_step` steps each, and the one that
     clones the validation split's demonstrations best (lowest `validation_nll`, over its first
-    `val_episodes` episodes; no subtask label read) trains on to the run's full steps. On Dial the
-    seeds whose options split the digits were the likeliest ones from step 2,000 on
-    (results/dial_memoryless/). Restart j of seed s trains with seed s * count + j, so the restarts of
-    different seeds never share one, and one restart is the seed itself."""
+    `val_episodes` episodes; no subtask label read) trains on to the run's full steps. On Dial a lower
+    NLL at step 2,000 went with a better digit split, loosely (results/dial_memoryless/, "Choosing
+    among restarts"). Restart j of seed s trains with seed s * count + j, so the restarts of different
+    seeds never share one, and a single restart is the seed itself."""
 
     count: int = 1
     select_step: int = 0
