@@ -290,6 +290,9 @@ def plot(args: argparse.Namespace) -> None:
         if missing:
             raise SystemExit(f"{path} has no {', '.join(missing)} in its curve (free-run success needs --rollouts).")
     fig, axes = plt.subplots(1, len(metrics), figsize=(4.5 * len(metrics), 3.6), squeeze=False)
+    if len(curves) > 10:  # past the default cycle's 10 colours, so that no two runs share one
+        for ax in axes[0]:
+            ax.set_prop_cycle(color=plt.get_cmap("tab20").colors)
     for path, result in curves.items():
         scale = result["settings"]["batch_size"] if args.x == "episodes" else 1
         curve = result["curve"]

@@ -14,8 +14,8 @@ which MoE, whose options last one step, has no use for). Each clone is the best 
 seeds: every restart trains `--select-step` steps, and the one whose actions fit the validation
 split's demonstrations best (lowest NLL; no digit label read) trains on to `--steps`
 (`runs.Restarts`), because the recipe splits the digits on some seeds only: on its first five
-seeds the two likeliest at step 2,000 were the two that split, and on four more the likeliest of
-three gained a third of what a choice told the labels gains (results/dial_memoryless/). It scores each OCN
+seeds the two likeliest at step 2,000 were the two that split, and on six more the likeliest of
+three gained about a third of what a choice told the labels gains (results/dial_memoryless/). It scores each OCN
 clone with `ocn-eval` on the validation split (F1@1, NMI, free-run success on the 2-digit PINs,
 option x digit table), then finetunes a fresh controller over each clone's frozen options with
 `ocn-finetune` on the 3-digit PINs of `--tasks`, under the sparse and the dense reward, every run
