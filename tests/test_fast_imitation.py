@@ -19,6 +19,7 @@ from tools.fast_imitation import (
     parse_overrides,
     peak_table,
     restart_gain,
+    restart_rows,
     restart_table,
     split_table,
 )
@@ -260,19 +261,22 @@ def test_restart_table_orders_runs_by_validation_nll_at_the_choice(tmp_path, cap
         paths.append(path)
     # Ordered by the NLL at the chosen step, not at the first one, with the scores of each run's last point
     # or of the step asked for.
-    assert restart_table(paths[::-1], 2000, ("nmi",)).splitlines()[2:] == [
+    assert restart_table(restart_rows(paths[::-1], 2000, None), 2000, ("nmi",)).splitlines()[2:] == [
         "| likely | 8.500 | 2000 | 0.600 |", "| middle | 8.600 | 2000 | 0.700 |", "| unlikely | 8.700 | 2000 | 0.200 |"]
-    assert restart_table(paths, 1000, ("nmi",)).splitlines()[2].startswith("| unlikely | 8.900 |")
-    assert restart_table(paths, 2000, ("nmi",), score_step=1000).splitlines()[2] == "| likely | 8.500 | 1000 | 0.600 |"
+    assert restart_table(restart_rows(paths, 1000, None), 1000, ("nmi",)).splitlines()[2].startswith(
+        "| unlikely | 8.900 |")
+    assert restart_table(restart_rows(paths, 2000, 1000), 2000, ("nmi",)).splitlines()[2] == \
+        "| likely | 8.500 | 1000 | 0.600 |"
     # Pairs {likely, unlikely}, {likely, middle}, {middle, unlikely}: the likeliest of each scores 0.6, 0.6, 0.7.
-    gain = restart_gain(paths, 2000, "nmi", 2)
+    rows = restart_rows(paths, 2000, None)
+    gain = restart_gain(rows, "nmi", 2)
     assert gain == pytest.approx({"sets": 3, "one": 0.5, "likeliest": 1.9 / 3, "best": 2.0 / 3})
-    assert restart_gain(paths, 2000, "val_nll", 2)["best"] == pytest.approx((8.5 + 8.5 + 8.6) / 3)  # the least
+    assert restart_gain(rows, "val_nll", 2)["best"] == pytest.approx((8.5 + 8.5 + 8.6) / 3)  # the least
     assert main(["plot", *map(str, paths), "--png", str(tmp_path / "r.png"), "--select-step", "2000",
                  "--restarts", "2", "--metrics", "nmi"]) == 0
     assert capsys.readouterr().out.rstrip().endswith(
         "nmi over all 3 sets of 2: one restart 0.500, the likeliest at step 2000 0.633, the best 0.667")
     with pytest.raises(SystemExit, match="likely.json has no evaluation at step 1500"):
-        restart_table(paths, 1500)
+        restart_rows(paths, 1500, None)
     with pytest.raises(SystemExit, match="--restarts 4: choose among 1..3 curve files"):
-        restart_gain(paths, 2000, "nmi", 4)
+        restart_gain(rows, "nmi", 4)

@@ -243,28 +243,26 @@ def restart_rows(paths: list[Path], select_step: int,
     return sorted(rows, key=lambda row: row[0])
 
 
-def restart_table(paths: list[Path], select_step: int, metrics: tuple[str, ...] = CURVE_METRICS,
-                  score_step: int | None = None) -> str:
-    """Markdown: the curve files as restarts of one recipe, ordered by their validation NLL at
-    `select_step` (the first row is the one `ocn-reproduce dial` keeps), with `metrics` at
-    `score_step` (each one's last point for None): whether the likeliest restarts parse best."""
+def restart_table(rows: list[tuple[float, str, dict[str, Any]]], select_step: int,
+                  metrics: tuple[str, ...] = CURVE_METRICS) -> str:
+    """Markdown: the `restart_rows` of curve files read as restarts of one recipe, in their order by
+    validation NLL at `select_step` (the first row is the one `ocn-reproduce dial` keeps), with `metrics`
+    at their scored point: whether the likeliest restarts parse best."""
     lines = [f"| run | val NLL at step {select_step} | scored at step | " + " | ".join(metrics) + " |",
              "|---|---|---|" + "---|" * len(metrics)]
-    for nll, name, point in restart_rows(paths, select_step, score_step):
+    for nll, name, point in rows:
         scores = " | ".join(f"{point[metric]:.3f}" for metric in metrics)
         lines.append(f"| {name} | {nll:.3f} | {point['step']} | {scores} |")
     return "\n".join(lines)
 
 
-def restart_gain(paths: list[Path], select_step: int, metric: str, count: int,
-                 score_step: int | None = None) -> dict[str, float]:
+def restart_gain(rows: list[tuple[float, str, dict[str, Any]]], metric: str, count: int) -> dict[str, float]:
     """What choosing among `count` restarts by validation NLL is worth, over every set of `count` of
-    the curve files: the mean `metric` (at `score_step`) of one restart, of the likeliest of the set,
-    and of the set's best by `metric` itself (for a parsing score, which reads the labels, the ceiling of
-    any choice)."""
+    the `restart_rows`: the mean `metric` (at their scored point) of one restart, of the likeliest of
+    the set, and of the set's best by `metric` itself (for a parsing score, which reads the labels, the
+    ceiling of any choice)."""
     from itertools import combinations
 
-    rows = restart_rows(paths, select_step, score_step)
     if not 1 <= count <= len(rows):
         raise SystemExit(f"--restarts {count}: choose among 1..{len(rows)} curve files.")
     sets = list(combinations([point[metric] for _, _, point in rows], count))  # each set in NLL order
@@ -313,9 +311,10 @@ def plot(args: argparse.Namespace) -> None:
         print(peak_table(args.curves, args.peak, metrics))
     if args.select_step:
         print()
-        print(restart_table(args.curves, args.select_step, metrics, args.score_step))
+        rows = restart_rows(args.curves, args.select_step, args.score_step)
+        print(restart_table(rows, args.select_step, metrics))
         for metric in metrics:
-            gain = restart_gain(args.curves, args.select_step, metric, args.restarts, args.score_step)
+            gain = restart_gain(rows, metric, args.restarts)
             print(f"\n{metric} over all {gain['sets']} sets of {args.restarts}: one restart {gain['one']:.3f}, the "
                   f"likeliest at step {args.select_step} {gain['likeliest']:.3f}, the best {gain['best']:.3f}")
 
