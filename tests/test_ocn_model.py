@@ -13,7 +13,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
-from policies.ocn.modeling_ocn import explained_terminations, termination_penalty, usage_imbalance
+from policies.ocn.modeling_ocn import explained_terminations, option_switches, termination_penalty, usage_imbalance
 from policies.ocn.heads import DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, sample_index
 from policies.ocn.recurrence import OCNState, StepOutput
 from policies.sequence import training_windows
@@ -277,6 +277,38 @@ def test_explained_termination_cost_joins_the_loss_and_lowers_the_terminations()
         make_policy(explained_termination_cost=-1.0)
     with pytest.raises(ValueError, match="explained_termination_cost is for hierarchy='ocn'"):
         make_policy(explained_termination_cost=0.1, hierarchy="hil")
+
+
+def test_option_switches_are_the_mass_that_changes_option_and_charge_no_reselection():
+    # T = 3, B = 2, N = 3. Row 0 reselects the same distribution at every step (however often its options
+    # ended, nothing changes option); row 1 moves 0.6, then all of its mass, to other options.
+    p_c = torch.tensor([[[0.2, 0.3, 0.5], [1.0, 0.0, 0.0]],
+                        [[0.2, 0.3, 0.5], [0.4, 0.6, 0.0]],
+                        [[0.2, 0.3, 0.5], [0.0, 0.0, 1.0]]], requires_grad=True)
+    value = option_switches(p_c)
+    torch.testing.assert_close(value, torch.tensor([[0.0, 0.0], [0.0, 0.6], [0.0, 1.0]]))
+    value[2, 1].backward()
+    # Descent moves p^c_t back toward p^c_{t-1}: the gradient is +1/2 where p^c_t grew, -1/2 where it shrank.
+    torch.testing.assert_close(p_c.grad[2, 1], torch.tensor([-0.5, -0.5, 0.5]))
+    torch.testing.assert_close(p_c.grad[1, 1], torch.tensor([0.5, 0.5, -0.5]))
+
+
+def test_switch_cost_joins_the_loss_as_the_mean_switched_mass_after_the_first_frame():
+    batch = make_batch(steps=5)
+    batch[f"{ACTION}_is_pad"][0, 3:] = True  # window 0 has 3 real frames, so 2 after its first
+    plain_loss, plain = make_policy().forward(batch)
+    policy = make_policy(switch_cost=0.5)
+    loss, stats = policy.forward(batch)
+    out = policy._unroll(batch[OBS_STATE], batch["task"])
+    switched = option_switches(out.p_c)[1:].transpose(0, 1).detach()
+    assert switched.gt(0).all()  # the fresh controller's choices differ a little from step to step
+    per_window = torch.stack([switched[0, :2].mean()] + [row.mean() for row in switched[1:]])
+    torch.testing.assert_close(loss, plain_loss + 0.5 * per_window.mean())
+    assert stats["nll"] == pytest.approx(plain["nll"]) and stats["option_switches"] > 0
+    with pytest.raises(ValueError, match="switch_cost must be >= 0, got -1.0"):
+        make_policy(switch_cost=-1.0)
+    with pytest.raises(ValueError, match="switch_cost is for hierarchy='ocn'"):
+        make_policy(switch_cost=0.1, hierarchy="moe")
 
 
 def test_log_termination_penalty_charges_minus_log_one_minus_e_and_keeps_its_gradient_where_e_is_confident():

@@ -143,9 +143,16 @@ def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_an
     assert charged == {"usage_balance": 1.0, "explained_termination_cost": 0.3}
     assert imitation.run_dir(Path("w"), main, 1, charged) == Path(
         "w/imitation_s1/3options_T10_usage_balance1.0_explained_termination_cost0.3/seed1")
-    assert imitation.explained_cost_words({"explained_termination_cost": 0.3}) == (
+    assert imitation.cost_words({"explained_termination_cost": 0.3}) == (
         ", explained-termination cost 0.3 (`--policy.explained_termination_cost`)")
-    assert imitation.explained_cost_words({}) == ""
+    switching = overrides("--switch-cost", "0.3")
+    assert switching == {"usage_balance": 1.0, "switch_cost": 0.3}
+    assert imitation.run_dir(Path("w"), main, 1, switching) == Path(
+        "w/imitation_s1/3options_T10_usage_balance1.0_switch_cost0.3/seed1")
+    assert imitation.cost_words({"explained_termination_cost": 0.3, "switch_cost": 0.5}) == (
+        ", explained-termination cost 0.3 (`--policy.explained_termination_cost`), "
+        "option-switch cost 0.5 (`--policy.switch_cost`)")
+    assert imitation.cost_words({}) == ""
 
 
 def test_imitation_runs_can_be_limited_to_chosen_variants():

@@ -275,6 +275,19 @@ def test_packed_clones_load_the_packed_view_in_folders_of_their_own_and_share_im
     assert finetune.clone_dir(parsed("s1", "--window-start", "packed"), SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
     assert shared.parent.name == "3options_T10_usage_balance1.0_packed"
     assert parsing.run_dir(parsed("parsing-s1", "--window-start", "packed"), methods["ompn"], 1).parent.name == "ompn_packed"
+    # --switch-cost reaches OCN's clones alone, and S1's OCN clone is still imitation-s1's run under it.
+    switching = parsed("s2", "--window-start", "packed", "--switch-cost", "0.3")
+    assert finetune.clone_settings(switching, SETTINGS["s2"], methods["ocn"])[1]["switch_cost"] == 0.3
+    assert "switch_cost" not in finetune.clone_settings(switching, SETTINGS["s2"], methods["moe"])[1]
+    assert finetune.clone_dir(switching, SETTINGS["s2"], methods["ocn"], "craft_s2_ab", 1).parent.name == (
+        "ocn_usage_balance1.0_packed_switch_cost0.3")
+    assert finetune.clone_dir(switching, SETTINGS["s2"], methods["moe"], "craft_s2_ab", 1).parent.name == (
+        "moe_usage_balance1.0_packed")
+    study = parsed("imitation-s1", "--window-start", "packed", "--switch-cost", "0.3")
+    shared = imitation.run_dir(tmp_path, imitation.VARIANTS[0], 1, imitation.study_overrides(study))
+    s1_switching = parsed("s1", "--window-start", "packed", "--switch-cost", "0.3")
+    assert finetune.clone_dir(s1_switching, SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
+    assert shared.parent.name == "3options_T10_usage_balance1.0_packed_switch_cost0.3"
     # Dial's clones take the packed view too (its normaliser standardises the packed columns).
     assert parsed("dial").window_start == "episode"
     assert dial.clone_dir(parsed("dial", "--window-start", "packed"), methods["ocn"], 1) == (

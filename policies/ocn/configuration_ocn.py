@@ -94,6 +94,18 @@ class OCNConfig(SequenceConfig):
     # S1 (results/imitation_s1_dart/, "Two more probes"): it made boundaries late and left the early ones;
     # from step 0 it suppresses the switches instead (results/imitation_s1_dart/explained_cost_screen/).
     explained_termination_cost: float = 0.0
+    # Added to the loss: this weight times 0.5 ||p^c_t - p^c_{t-1}||_1 over each window's real frames
+    # after the first, the probability mass that changes option at step t (0: the paper's loss). It is
+    # 0 wherever the controller picks the running option again, however often options terminate, and
+    # 0 at initialisation, where every p^c is near uniform, so unlike a termination cost it does not
+    # hold the split back. Where a restart explains the action as well whichever option the controller
+    # picks, it tips the choice to the running option, so that option keeps (and learns) the step.
+    # Measured on S1's DART recording (results/imitation_s1_switch_cost/): at 0.3 it keeps the `use`
+    # after a vertical move with its own subtask's option on seeds where the study's recipe hands it to
+    # the next (seeds 1 and 2, alignment 0.955 and 0.902 to 0.981 and 0.978), at the price of a few
+    # missed switches before short final subtasks; seed 2 still hands a third of those steps over
+    # after step 3,000, and seed 4 stalls in a shared pair, so the study does not use it by default.
+    switch_cost: float = 0.0
     # Added to the loss: this weight times KL(u || uniform), u being the batch's mean p^c over its
     # real frames (0: the paper's loss). Under the NLL alone, the option that first fits a little
     # better is picked more, so it trains more and is picked more still: within a few hundred
@@ -157,7 +169,9 @@ class OCNConfig(SequenceConfig):
             raise ValueError(f"termination_cost must be >= 0, got {self.termination_cost}.")
         if self.explained_termination_cost < 0:
             raise ValueError(f"explained_termination_cost must be >= 0, got {self.explained_termination_cost}.")
-        for name in ("forced_restart_rate", "termination_cost", "explained_termination_cost"):
+        if self.switch_cost < 0:
+            raise ValueError(f"switch_cost must be >= 0, got {self.switch_cost}.")
+        for name in ("forced_restart_rate", "termination_cost", "explained_termination_cost", "switch_cost"):
             if getattr(self, name) and self.hierarchy != "ocn":
                 raise ValueError(f"{name} is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}.")
         if self.usage_balance < 0:

@@ -56,6 +56,13 @@ def explained_terminations(out: StepOutput, component: Tensor) -> Tensor:
     return (previous * out.option_end * explained).sum(-1)
 
 
+def option_switches(p_c: Tensor) -> Tensor:
+    """0.5 ||p^c_t - p^c_{t-1}||_1 [T, B] of time-major p^c [T, B, N] (`OCNConfig.switch_cost`): the
+    probability mass that moves to another option at step t. Row t = 0 (the first choice) is 0."""
+    change = 0.5 * (p_c[1:] - p_c[:-1]).abs().sum(-1)
+    return torch.cat([torch.zeros_like(change[:1]), change])
+
+
 def usage_imbalance(p_c: Tensor, mask: Tensor, options: int = 0) -> Tensor:
     """KL(u || uniform) of the options' share u = the mean of p^c [T, B, N] over real frames mask [B, T]:
     0 when every option takes as many frames as the others, log N when one takes them all. With
@@ -165,6 +172,8 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         if self.config.explained_termination_cost:
             penalties["explained_terminations"] = (self.config.explained_termination_cost,
                                                    explained_terminations(out, component))
+        if self.config.switch_cost:
+            penalties["option_switches"] = (self.config.switch_cost, option_switches(out.p_c))
         loss, stats = window_nll(self._action_log_prob(out, component), mask, reduction, {"mean_end": out.end}, penalties,
                                  packed=self.config.packed)
         imbalance = usage_imbalance(out.p_c, mask, self.config.usage_balance_options)
@@ -224,8 +233,9 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         """Per-step hierarchy of whole episodes (each row starts at its episode's first frame).
 
         Returns batch-major p_c [B, T, N], option = argmax p^c [B, T], end = e_t [B, T] (1 at t = 1,
-        where the controller always chooses), option_end = e_{i,t} [B, T, N], mask [B, T], and
-        action_log_prob [B, T] when the batch has actions.
+        where the controller always chooses), option_end = e_{i,t} [B, T, N], mask [B, T], and when the
+        batch has actions action_log_prob [B, T] and component_log_prob [B, T, 2N], each mixture
+        component's log p_k(a_t): the N continuing options, then the N restarted ones.
         """
         out = self._unroll(batch[OBS_STATE], batch["task"])
         result = {
@@ -236,7 +246,9 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             "mask": frame_mask(batch),
         }
         if ACTION in batch:
-            result["action_log_prob"] = self._action_log_prob(out, self._component_log_prob(out, batch[ACTION]))
+            component = self._component_log_prob(out, batch[ACTION])
+            result["action_log_prob"] = self._action_log_prob(out, component)
+            result["component_log_prob"] = component.permute(2, 0, 1)
         return result
 
     def _episode_starts(self, batch: dict[str, Any]) -> Tensor:

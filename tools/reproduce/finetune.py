@@ -81,6 +81,7 @@ REWARDS = ("sparse", "dense")
 BASELINES = tuple(method.name for method in METHODS if method.key != "ocn")
 # The value of each study setting that results files written before it existed leave out.
 SETTING_DEFAULTS = {"window_start": imitation.STUDY_DEFAULTS["window_start"], "usage_balance": 0.0,
+                    "switch_cost": imitation.STUDY_DEFAULTS["switch_cost"],
                     **imitation.UNSETTLED, **imitation.RECORDING_DEFAULTS, "entropy": PPOConfig.entropy_coef,
                     "gamma": PPOConfig.gamma}
 
@@ -102,13 +103,20 @@ def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -
     if method.policy_type != "ocn":
         return replace(settings, policy={}, policy_type=method.policy_type), {**(method.overrides or {}), **loading}
     return settings, {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {}),
-                      **balance_override(args), **loading}
+                      **balance_override(args), **loading, **switch_override(args, method)}
 
 
 def balance_override(args: argparse.Namespace) -> dict[str, float]:
     """`--policy.usage_balance` of the OCN-family clones (OCN, MoE, HIL alike), spelled out only
     when it is not the paper's loss, so that runs made before the option existed keep their command."""
     return {"usage_balance": args.usage_balance} if args.usage_balance else {}
+
+
+def switch_override(args: argparse.Namespace, method: Method) -> dict[str, float]:
+    """`--policy.switch_cost` of OCN's clones (`--switch-cost`), spelled out only when set: MoE and HIL
+    choose at every step or after a fixed length, so there are no terminations whose choice it could steer."""
+    cost = getattr(args, "switch_cost", imitation.STUDY_DEFAULTS["switch_cost"])
+    return {"switch_cost": cost} if cost and method.key == "ocn" else {}
 
 
 def loading_override(args: argparse.Namespace) -> dict[str, str]:
@@ -126,7 +134,7 @@ def clone_study_suffix(args: argparse.Namespace, method: Method) -> str:
     if method.overrides is None:
         return ""
     balance = balance_override(args) if method.policy_type == "ocn" else {}
-    return imitation.settings_suffix({**balance, **loading_override(args)})
+    return imitation.settings_suffix({**balance, **loading_override(args), **switch_override(args, method)})
 
 
 def clone_settling(args: argparse.Namespace, method: Method) -> Settling | None:
@@ -164,7 +172,7 @@ def clone_dir(args: argparse.Namespace, setting: Setting, method: Method, folder
     --window-start S`), so both reproductions share those runs, and their settling phase too."""
     if setting.name == "s1" and method.name == "OCN":
         return imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed,
-                                 {**balance_override(args), **loading_override(args)})
+                                 {**balance_override(args), **loading_override(args), **switch_override(args, method)})
     return args.workdir / "clone" / folder / f"{method.key}{clone_study_suffix(args, method)}" / f"seed{seed}"
 
 
@@ -380,7 +388,7 @@ def markdown(result: dict[str, Any]) -> str:
         f"{setting.n_options} options per cloned model{skills_note}, cloned by "
         f"`lerobot-train` on {imitation.loading_words(settings)}{imitation.recording_words(settings)} "
         f"(OCN-family clones' option-usage balance {settings['usage_balance']}; "
-        f"OCN's: {imitation.settling_words(settings)}); PPO through `ocn-finetune`, "
+        f"OCN's{imitation.cost_words(settings)}: {imitation.settling_words(settings)}); PPO through `ocn-finetune`, "
         f"{settings['frames']} env frames per run, {settings['envs']} envs, entropy bonus {settings['entropy']:g}, "
         f"discount {settings['gamma']:g}. "
         f"Values at the budget are the mean of each run's last {FINAL_ROWS} PPO iterations, then mean (std) over "
@@ -520,6 +528,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         imitation.add_training_arguments(parser)
         imitation.add_window_start_argument(parser)
         imitation.add_dart_noise_argument(parser)
+        imitation.add_switch_cost_argument(parser)
         imitation.add_settling_arguments(parser, 0, "OCN's clones (as imitation-s1's, which settles by default)")
         parser.add_argument("--results", type=Path, default=RESULTS)
         parser.set_defaults(func=reproduce)

@@ -37,7 +37,8 @@ STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": Sequ
                   "optimizer_lr": SequenceConfig.optimizer_lr,
                   "optimizer_weight_decay": SequenceConfig.optimizer_weight_decay,
                   "window_start": SequenceConfig.window_start,
-                  "explained_termination_cost": OCNConfig.explained_termination_cost}
+                  "explained_termination_cost": OCNConfig.explained_termination_cost,
+                  "switch_cost": OCNConfig.switch_cost}
 # The option-usage balance this study trains with unless told otherwise: without it, whether the
 # options split the subtasks within a run's steps is a matter of the run (README, results).
 STUDY_USAGE_BALANCE = 1.0
@@ -46,7 +47,7 @@ STUDY_USAGE_BALANCE = 1.0
 STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
               "lr_schedule", "obs_encoder", "usage_balance", "optimizer_lr", "rollouts", "settle_steps",
               "settle_termination_cost", "window_start", "optimizer_weight_decay", "dart_noise",
-              "usage_balance_options", "explained_termination_cost")
+              "usage_balance_options", "explained_termination_cost", "switch_cost")
 # What a results file written before the study settled its runs was made with.
 UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0}
 # How the demonstrations were recorded, where a study may differ from `record_demos`'s defaults.
@@ -224,7 +225,7 @@ def markdown(result: dict[str, Any]) -> str:
         "controller learning-rate "
         f"scale {result['settings']['controller_lr_scale']}, option-usage balance "
         f"{result['settings'].get('usage_balance', STUDY_DEFAULTS['usage_balance'])}"
-        f"{balance_options_words(result['settings'])}{explained_cost_words(result['settings'])}, observation encoder "
+        f"{balance_options_words(result['settings'])}{cost_words(result['settings'])}, observation encoder "
         f"`{result['settings']['obs_encoder']}`, {loading_words(result['settings'])}"
         f"{recording_words(result['settings'])}; {settling_words(result['settings'])} (a run's train time "
         "includes it); scores: `ocn-eval` "
@@ -382,10 +383,15 @@ def balance_options_words(settings: dict[str, Any]) -> str:
     return f" over {options} options' worth of usage (`--policy.usage_balance_options`)" if options else ""
 
 
-def explained_cost_words(settings: dict[str, Any]) -> str:
-    """The explained-termination cost the runs trained under from their first step, where there was one."""
-    cost = settings.get("explained_termination_cost", STUDY_DEFAULTS["explained_termination_cost"])
-    return f", explained-termination cost {cost:g} (`--policy.explained_termination_cost`)" if cost else ""
+def cost_words(settings: dict[str, Any]) -> str:
+    """The explained-termination and option-switch costs the runs trained under from their first step,
+    where there were any."""
+    words = ""
+    costs = (("explained_termination_cost", "explained-termination cost"), ("switch_cost", "option-switch cost"))
+    for key, name in costs:
+        cost = settings.get(key, STUDY_DEFAULTS[key])
+        words += f", {name} {cost:g} (`--policy.{key}`)" if cost else ""
+    return words
 
 
 def recording_words(settings: dict[str, Any]) -> str:
@@ -433,6 +439,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--explained-termination-cost", type=float, default=STUDY_DEFAULTS["explained_termination_cost"],
                     help="weight of the cost on terminations the ending option would have explained "
                          "(OCNConfig.explained_termination_cost; 0 is the paper's loss), from a run's first step")
+    add_switch_cost_argument(s1)
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
@@ -452,6 +459,14 @@ def add_first_seed_argument(parser: argparse.ArgumentParser) -> None:
                         help="seed to count from: `--first-seed 3 --seeds 2` runs seeds 3 and 4, so that the seeds "
                              "of one study can run in several invocations (side by side or in turn) and add up "
                              "(`ocn-reproduce combine` joins their results files)")
+
+
+def add_switch_cost_argument(parser: argparse.ArgumentParser) -> None:
+    """`--switch-cost` of the studies that clone OCN."""
+    parser.add_argument("--switch-cost", type=float, default=STUDY_DEFAULTS["switch_cost"],
+                        help="weight of the cost on the probability mass that changes option at a step, in OCN's "
+                             "behaviour cloning (OCNConfig.switch_cost; 0 is the paper's loss), from a run's first "
+                             "step")
 
 
 def add_dart_noise_argument(parser: argparse.ArgumentParser) -> None:
