@@ -22,9 +22,10 @@ from typing import Any
 
 import numpy as np
 
+from envs.craft.world import ACTION_NAMES
 from ocn_data.episodes_table import EpisodeArrays, load_episodes, split_episodes
 from policies.ocn.modeling_ocn import OCNPolicy
-from tools.episode_parsing import Processor, _parsed_episodes, load_ocn
+from tools.episode_parsing import Processor, load_ocn, parsed_episodes
 from tools.parsing_metrics import boundaries_from_labels
 
 PROBE_KEYS = ("end", "option", "component_log_prob")
@@ -38,7 +39,7 @@ def probe_boundaries(
     inner true boundary steps and the means of COLUMNS' other quantities over them."""
     n_options = policy.config.n_options
     rows: list[tuple[int, list[float]]] = []
-    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, PROBE_KEYS)
+    parsed = parsed_episodes(policy, preprocessor, episodes, batch_size, PROBE_KEYS)
     for i, episode in enumerate(parsed):
         length = int(episodes.lengths[i])
         action_prob = np.exp(episode["component_log_prob"])
@@ -82,8 +83,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     policy, preprocessor, _ = load_ocn(args.policy)
     policy.eval()
     probe = probe_boundaries(policy, preprocessor, episodes)
-    from envs.craft.world import ACTION_NAMES
-
     print(table(probe, ACTION_NAMES))
     result = {"policy": str(args.policy), "root": str(args.root), "split": args.split,
               "episodes": len(episodes.tasks), "by_previous_action": probe}

@@ -112,7 +112,7 @@ def check_tasks(policy: PreTrainedPolicy, episodes: EpisodeArrays) -> None:
         raise ValueError(f"The dataset has tasks {unknown} that the policy was not trained on ({policy.config.tasks}).")
 
 
-def _parsed_episodes(
+def parsed_episodes(
     policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int, keys: Sequence[str]
 ) -> Iterator[dict[str, np.ndarray]]:
     """`policy.parse`'s outputs `keys` for each whole episode, cut to its real steps, in episode order."""
@@ -136,7 +136,7 @@ def parse_episodes(
     policy: OCNPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int = 1024
 ) -> list[EpisodeParse]:
     """The OCN's hierarchy over each whole episode, cut to the episode's real steps."""
-    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("p_c", "option", "end"))
+    parsed = parsed_episodes(policy, preprocessor, episodes, batch_size, ("p_c", "option", "end"))
     return [EpisodeParse(**episode) for episode in parsed]
 
 
@@ -144,7 +144,7 @@ def _ocn_segmentations(
     policy: OCNPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int
 ) -> list[Segmentation]:
     """OCN: the chosen option argmax p^c labels each step; a segment ends where it changes."""
-    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("option", "action_log_prob"))
+    parsed = parsed_episodes(policy, preprocessor, episodes, batch_size, ("option", "action_log_prob"))
     return [
         Segmentation(boundaries_from_labels(episode["option"]), episode["option"], episode["action_log_prob"])
         for episode in parsed
@@ -166,7 +166,7 @@ def _ompn_parse(
     policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int
 ) -> list[dict[str, np.ndarray]]:
     """OMPN's per-step expected expansion height (`depth`) and action log-likelihood of each episode."""
-    return list(_parsed_episodes(policy, preprocessor, episodes, batch_size, ("depth", "action_log_prob")))
+    return list(parsed_episodes(policy, preprocessor, episodes, batch_size, ("depth", "action_log_prob")))
 
 
 def _ompn_read_out(
@@ -195,7 +195,7 @@ def _compile_segmentations(
     earlier boundary) add none. Labels: each step's segment's concrete latent category (argmax);
     Gaussian latents give none."""
     concrete = policy.config.latent_type == "concrete"
-    parsed = _parsed_episodes(policy, preprocessor, episodes, batch_size, ("segment", "label"))
+    parsed = parsed_episodes(policy, preprocessor, episodes, batch_size, ("segment", "label"))
     return [
         Segmentation(boundaries_from_labels(episode["segment"]), episode["label"] if concrete else None)
         for episode in parsed
