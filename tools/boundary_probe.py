@@ -6,8 +6,9 @@ subtask's option as by the running one, the NLL does not care which acts, and a 
 step to the successor. Scores only show the offset (`ocn-eval`'s `boundary_offsets`); this shows why.
 For every inner true boundary step of the demonstrations it reads, from the soft recurrence: e_t,
 the probability of the demonstrated action under the running option continued and restarted, and
-under the best other restarted option, and whether the parse's label (argmax p^c_t) already changed
-there (one step early). Steps are grouped, as in `ocn-eval`, by the demonstrated action one step
+under the best other restarted option, and whether the parse's label (argmax p^c_t) there is no
+longer the running option's (`handed_over`: the step went to another option; `ocn-eval`'s offsets
+instead measure to the nearest predicted boundary). Steps are grouped, as in `ocn-eval`, by the demonstrated action one step
 before the boundary step.
 
     python -m tools.boundary_probe --policy CKPT --root DIR [--split val] [--max-episodes 1200] [--out FILE.json]

@@ -99,11 +99,10 @@ def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -
     of width 128, lr 1e-3, gradient clip 0.2) on the same data, steps, batch and windows, without
     OCN's controller learning-rate scale, which they have no use for.
     """
-    settings, loading = imitation.train_settings(args), loading_override(args)
+    settings, study = imitation.train_settings(args), clone_overrides(args, method)
     if method.policy_type != "ocn":
-        return replace(settings, policy={}, policy_type=method.policy_type), {**(method.overrides or {}), **loading}
-    return settings, {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {}),
-                      **balance_override(args), **loading, **switch_override(args, method)}
+        return replace(settings, policy={}, policy_type=method.policy_type), {**(method.overrides or {}), **study}
+    return settings, {"n_options": setting.n_options, "temperature": 10.0, **(method.overrides or {}), **study}
 
 
 def balance_override(args: argparse.Namespace) -> dict[str, float]:
@@ -127,14 +126,20 @@ def loading_override(args: argparse.Namespace) -> dict[str, str]:
     return {} if start == imitation.STUDY_DEFAULTS["window_start"] else {"window_start": start}
 
 
+def clone_overrides(args: argparse.Namespace, method: Method) -> dict[str, Any]:
+    """The study-wide `--policy.*` settings of the method's clones, each spelled out only when set: the
+    usage balance of the OCN family, the packed view of any clone, the switch cost of OCN's."""
+    balance = balance_override(args) if method.policy_type == "ocn" else {}
+    return {**balance, **loading_override(args), **switch_override(args, method)}
+
+
 def clone_study_suffix(args: argparse.Namespace, method: Method) -> str:
     """Folder-name suffix of a method's runs over clones made under non-default study settings (the
     usage balance of the OCN family, the packed view of any clone), named as the imitation study names
     its folders, so that they live beside the default ones (flat PPO, which clones nothing: none)."""
     if method.overrides is None:
         return ""
-    balance = balance_override(args) if method.policy_type == "ocn" else {}
-    return imitation.settings_suffix({**balance, **loading_override(args), **switch_override(args, method)})
+    return imitation.settings_suffix(clone_overrides(args, method))
 
 
 def clone_settling(args: argparse.Namespace, method: Method) -> Settling | None:
@@ -171,8 +176,7 @@ def clone_dir(args: argparse.Namespace, setting: Setting, method: Method, folder
     main variant under the same usage balance and loading (`imitation-s1 --usage-balance W
     --window-start S`), so both reproductions share those runs, and their settling phase too."""
     if setting.name == "s1" and method.name == "OCN":
-        return imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed,
-                                 {**balance_override(args), **loading_override(args), **switch_override(args, method)})
+        return imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed, clone_overrides(args, method))
     return args.workdir / "clone" / folder / f"{method.key}{clone_study_suffix(args, method)}" / f"seed{seed}"
 
 
