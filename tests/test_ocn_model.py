@@ -13,8 +13,10 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
-from policies.ocn.modeling_ocn import explained_terminations, option_switches, termination_penalty, usage_imbalance
-from policies.ocn.heads import DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, sample_index
+from policies.ocn.modeling_ocn import (explained_terminations, option_switches, option_usage, termination_penalty,
+                                       usage_imbalance)
+from policies.ocn.heads import (DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, option_responsibilities,
+                                sample_index)
 from policies.ocn.recurrence import OCNState, StepOutput
 from policies.sequence import training_windows
 
@@ -356,8 +358,63 @@ def test_usage_imbalance_over_k_options_lets_the_spare_ones_idle():
     # Two options' worth of entropy is below three's: charged the difference.
     two = torch.nn.functional.one_hot(torch.tensor([[0], [1], [0], [1], [0], [1]]), 6).float()
     assert usage_imbalance(two, mask, options=3).item() == pytest.approx(math.log(3) - math.log(2))
+    # Exact: usage over more than K options' worth is charged too, and its gradient moves share to the commoner options.
+    assert usage_imbalance(two, mask, options=3, exact=True).item() == pytest.approx(math.log(3) - math.log(2))
+    assert usage_imbalance(three, mask, options=2, exact=True).item() == pytest.approx(math.log(3) - math.log(2))
+    assert usage_imbalance(three, mask, options=3, exact=True).item() == pytest.approx(0.0, abs=1e-6)
+    logits = torch.tensor([0.4, 0.3, 0.2, 0.1, 0.05, 0.05]).log().repeat(6, 1, 1).requires_grad_()
+    usage_imbalance(torch.softmax(logits, -1), mask, options=2, exact=True).backward()
+    step = -logits.grad.sum((0, 1))  # descent on the logits: up for the two commonest options, down for the rest
+    assert (step[:2] > 0).all() and (step[2:] < 0).all()
     with pytest.raises(ValueError, match=r"usage_balance_options must be in \[0, n_options = 3\], got 4"):
         make_policy(usage_balance_options=4)
+    with pytest.raises(ValueError, match="usage_balance_exact needs 0 < usage_balance_options < n_options = 3, got "
+                                         "usage_balance_options = 0"):
+        make_policy(usage_balance_exact=True)
+
+
+def test_option_responsibilities_are_each_options_share_of_the_mixed_likelihood():
+    # B = 1, N = 2: components (continuing 0, continuing 1, restarted 0, restarted 1).
+    weights = torch.tensor([[0.5, 0.1, 0.1, 0.3]])
+    likelihood = torch.tensor([0.2, 0.9, 0.6, 0.05])
+    mixed = (weights[0] * likelihood).sum()
+    expected = torch.tensor([[(0.5 * 0.2 + 0.1 * 0.6) / mixed, (0.1 * 0.9 + 0.3 * 0.05) / mixed]])
+    shares = option_responsibilities(weights, likelihood.log().unsqueeze(-1))
+    torch.testing.assert_close(shares, expected)
+    # A component of weight 0 takes no share, however well it predicts.
+    shares = option_responsibilities(torch.tensor([[0.0, 0.5, 0.0, 0.5]]), torch.zeros(4, 1))
+    torch.testing.assert_close(shares, torch.tensor([[0.0, 1.0]]))
+
+
+def test_posterior_usage_balance_counts_the_options_responsibilities_not_the_controllers_weights():
+    batch = make_batch(steps=5)
+    batch[f"{ACTION}_is_pad"][0, 3:] = True
+    policy, plain_policy = make_policy(usage_balance=1.0, usage_balance_source="posterior"), make_policy()
+    with torch.no_grad():  # option 0 predicts action 0 almost surely: where it is demonstrated, option 0 explains it
+        for sure in (policy, plain_policy):
+            sure.core.options.b_out[0, 0, :4] = torch.tensor([20.0, 0.0, 0.0, 0.0])
+    loss, stats = policy.forward(batch)
+    mask, state, action = training_windows(policy.config, batch)
+    out = policy._unroll(state, batch["task"], mask)
+    component = policy._component_log_prob(out, action)
+    shares = option_responsibilities(out.weights, component)
+    expected = usage_imbalance(shares, mask)
+    assert stats["usage_imbalance"] == pytest.approx(expected.item())
+    assert abs(expected.item() - usage_imbalance(out.p_c, mask).item()) > 0.01
+    torch.testing.assert_close(loss, plain_policy.forward(batch)[0] + expected)
+    with pytest.raises(ValueError, match="usage_balance_source must be 'controller', 'posterior' or 'untempered', "
+                                         "got 'argmax'"):
+        make_policy(usage_balance_source="argmax")
+
+
+def test_untempered_usage_is_the_controllers_choice_without_its_temperature():
+    policy = make_policy(temperature=10.0, usage_balance_source="untempered")
+    logits = torch.tensor([[[2.0, 1.0, 0.5]]])  # one frame's controller logits: p^c = softmax(logits / 10)
+    p_c = torch.softmax(logits / 10.0, -1)
+    decided = StepOutput(torch.zeros(1, 1, 6), torch.zeros(6, 1, 4), p_c, torch.ones(1, 1), torch.zeros(1, 1, 3))
+    torch.testing.assert_close(option_usage(policy.config, decided, torch.zeros(1, 6, 1)), torch.softmax(logits, -1))
+    policy.config.usage_balance_source = "controller"
+    torch.testing.assert_close(option_usage(policy.config, decided, torch.zeros(1, 6, 1)), p_c)
 
 
 def test_usage_balance_adds_the_weighted_imbalance_and_moves_the_controller_toward_the_rarer_options():

@@ -139,6 +139,12 @@ def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_an
     words = imitation.balance_options_words
     assert words({"usage_balance_options": 3}) == " over 3 options' worth of usage (`--policy.usage_balance_options`)"
     assert words({}) == words({"usage_balance_options": 0}) == ""
+    counted = overrides("--usage-balance-options", "3", "--usage-balance-source", "posterior")
+    assert counted == {"usage_balance": 1.0, "usage_balance_options": 3, "usage_balance_source": "posterior"}
+    assert imitation.run_dir(Path("w"), imitation.VARIANTS[2], 1, counted) == Path(
+        "w/imitation_s1/6options_T10_usage_balance1.0_usage_balance_options3_posterior/seed1")
+    assert words(counted) == (" over 3 options' worth of usage (`--policy.usage_balance_options`), usage counted as "
+                              "the options' posterior shares (`--policy.usage_balance_source`)")
     charged = overrides("--explained-termination-cost", "0.3")
     assert charged == {"usage_balance": 1.0, "explained_termination_cost": 0.3}
     assert imitation.run_dir(Path("w"), main, 1, charged) == Path(

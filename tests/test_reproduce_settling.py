@@ -64,6 +64,25 @@ def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path
     unsettled = _reproduce(tmp_path, "--settle-steps", "0")
     assert unsettled.returncode != 0 and "settle_steps 2 there, 0 here" in unsettled.stderr
 
+    # Policy settings of the settling phase alone: a folder of its own beside the first settling, from the same run.
+    spare = _reproduce(tmp_path, "--settle-steps", "2", "--settle-termination-cost", "0.3",
+                       "--settle-usage-balance-options", "2", "--settle-usage-balance-exact", "--settle-switch-cost",
+                       "0.2", "--results", str(tmp_path / "results_spare"))
+    assert spare.returncode == 0, spare.stderr[-2000:]
+    spare_dir = run / "settle_usage_balance_options2_usage_balance_exact_switch_cost0.2"
+    spare_config = json.loads((spare_dir / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
+    assert (spare_config["usage_balance_options"], spare_config["usage_balance_exact"], spare_config["switch_cost"],
+            spare_config["n_options"]) == (2, True, 0.2, 3)
+    assert f"--policy.path={first / 'checkpoints' / 'last' / 'pretrained_model'}" in (
+        spare_dir / "train_command.txt").read_text()
+    assert (run / "settle" / "train" / "checkpoints" / "last" / "pretrained_model" / "model.safetensors").exists()
+    assert ("log termination cost 0.3, `--policy.usage_balance_options=2`, `--policy.usage_balance_exact=true`, "
+            "`--policy.switch_cost=0.2`"
+            in (tmp_path / "results_spare" / "imitation_s1.md").read_text())
+    refused = _reproduce(tmp_path, "--settle-steps", "2", "--settle-termination-cost", "0.3",
+                         "--results", str(tmp_path / "results_spare"))
+    assert refused.returncode != 0 and "settle_switch_cost 0.2 there, None here" in refused.stderr
+
     # A first run extended to more steps is settled again, from its new last checkpoint.
     longer = _reproduce(tmp_path, "--steps", "4", "--settle-steps", "2", "--settle-termination-cost", "0.3",
                         "--results", str(tmp_path / "results_4"))

@@ -120,6 +120,23 @@ class OCNConfig(SequenceConfig):
     # (results/imitation_s1_6options_spare/): the tempered p^c keeps the shares' entropy above ln 3, so
     # at K = 3 the term never charged, and two of 6 options took the three subtasks.
     usage_balance_options: int = 0
+    # With K < N: charge |ln K - H(u)| instead of the floor max(0, ln K - H(u)), so that usage spread
+    # over more than K options' worth is charged too. Its gradient moves share from the rarer options
+    # to the commoner ones, which merges two options that each hold the same subtask in some episodes.
+    # Measured on 6 options (results/imitation_s1_6options_settled/): after the full balance has split
+    # them, K = 3 exact merged the pairs where the floor left one subtask on two options.
+    usage_balance_exact: bool = False
+    # What the balance counts as an option's use of a frame. "controller": its weight p^c_t.
+    # "untempered": p^c_t without the temperature, softmax(T log p^c_t), which where the controller
+    # decides afresh is softmax of its logits: near its actual pick even while the tempered p^c is
+    # soft. "posterior": the option's responsibility for the demonstrated action, its components'
+    # share w_k p_k(a_t) / p^a_t(a_t) of the mixed likelihood. The last two are sharp where the
+    # tempered weights are not, so that a floor of K < N options can charge a pool that has put
+    # three subtasks on two options. Measured on 6 options at K = 3 from step 0 (results/
+    # imitation_s1_6options_settled/, screen): the posterior charged nothing before the options
+    # differed, as the controller's weight did not, and the untempered one kept NMI under 0.02 to
+    # step 2,000; what split 6 options is the full balance first and K = 3 only once they have split.
+    usage_balance_source: str = "controller"
     # Added to the loss: this weight times the expected NLL under the mixture weights,
     # sum_k w_k (-log p_k(a_t)), averaged like the NLL (0: the paper's loss alone). Over discrete
     # actions the mixture of the options' categoricals is itself one categorical, so under the
@@ -180,6 +197,12 @@ class OCNConfig(SequenceConfig):
             raise ValueError(
                 f"usage_balance_options must be in [0, n_options = {self.n_options}], got {self.usage_balance_options}."
             )
+        if self.usage_balance_exact and not 0 < self.usage_balance_options < self.n_options:
+            raise ValueError(f"usage_balance_exact needs 0 < usage_balance_options < n_options = {self.n_options}, "
+                             f"got usage_balance_options = {self.usage_balance_options}.")
+        if self.usage_balance_source not in ("controller", "posterior", "untempered"):
+            raise ValueError(f"usage_balance_source must be 'controller', 'posterior' or 'untempered', "
+                             f"got {self.usage_balance_source!r}.")
         if self.expected_nll_weight < 0:
             raise ValueError(f"expected_nll_weight must be >= 0, got {self.expected_nll_weight}.")
         if self.initial_state_std < 0:

@@ -30,6 +30,15 @@ def expected_log_prob(weights: Tensor, component_log_prob: Tensor) -> Tensor:
     return (weights * component_log_prob.transpose(-1, -2)).sum(dim=-1)
 
 
+def option_responsibilities(weights: Tensor, component_log_prob: Tensor) -> Tensor:
+    """Each option's share of the mixed likelihood, w_k p_k(a) / sum_j w_j p_j(a), its continuing and
+    restarted components added: weights [..., B, 2N], component_log_prob [..., 2N, B] -> [..., B, N]."""
+    scores = component_log_prob.transpose(-1, -2) + torch.log(weights.clamp_min(torch.finfo(weights.dtype).tiny))
+    posterior = torch.softmax(scores, dim=-1)
+    continuing, restarted = posterior.chunk(2, dim=-1)
+    return continuing + restarted
+
+
 def sample_index(probs: Tensor) -> Tensor:
     """One index per row of probabilities [B, K], drawn as argmax_k p_k / E_k with E_k ~ Exp(1)
     (the exponential race). That is how `torch.multinomial` draws a single sample, so the draws are

@@ -18,7 +18,7 @@ from policies.sequence import SequencePolicy, frame_mask, training_windows, wind
 
 from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
-from .heads import expected_log_prob, make_action_head, mixture_log_prob
+from .heads import expected_log_prob, make_action_head, mixture_log_prob, option_responsibilities
 from .latent_options import LatentDecoderPool
 from .recurrence import HardState, OCNCore, OCNState, StepOutput, longest_first
 
@@ -63,18 +63,31 @@ def option_switches(p_c: Tensor) -> Tensor:
     return torch.cat([torch.zeros_like(change[:1]), change])
 
 
-def usage_imbalance(p_c: Tensor, mask: Tensor, options: int = 0) -> Tensor:
-    """KL(u || uniform) of the options' share u = the mean of p^c [T, B, N] over real frames mask [B, T]:
+def usage_imbalance(p_c: Tensor, mask: Tensor, options: int = 0, exact: bool = False) -> Tensor:
+    """KL(u || uniform) of the options' share u = the mean of p^c [T, B, N] (or of another per-frame
+    use of the options, `OCNConfig.usage_balance_source`) over real frames mask [B, T]:
     0 when every option takes as many frames as the others, log N when one takes them all. With
     `options` K < N, max(0, KL - ln(N / K)) = max(0, ln K - H(u)): 0 while u spreads over at least K
-    options' worth of entropy (`OCNConfig.usage_balance_options`)."""
+    options' worth of entropy (`OCNConfig.usage_balance_options`); `exact` charges |ln K - H(u)|, usage
+    spread wider than K options' worth too (`OCNConfig.usage_balance_exact`)."""
     weights = mask.transpose(0, 1).unsqueeze(-1).to(p_c.dtype)
     share = (p_c * weights).sum((0, 1)) / weights.sum().clamp_min(1.0)
     n_options = p_c.shape[-1]
     kl = (share * torch.log(share.clamp_min(1e-12) * n_options)).sum()
     if 0 < options < n_options:
-        return (kl - math.log(n_options / options)).clamp_min(0.0)
+        excess = kl - math.log(n_options / options)
+        return excess.abs() if exact else excess.clamp_min(0.0)
     return kl
+
+
+def option_usage(config: OCNConfig, out: StepOutput, component: Tensor) -> Tensor:
+    """Each option's use of each frame [T, B, N] as the usage balance counts it (`OCNConfig.usage_balance_source`),
+    from time-major outputs and `_component_log_prob`'s log p_k(a_t)."""
+    if config.usage_balance_source == "posterior":
+        return option_responsibilities(out.weights, component)
+    if config.usage_balance_source == "untempered":
+        return torch.softmax(config.temperature * torch.log(out.p_c.clamp_min(torch.finfo(out.p_c.dtype).tiny)), -1)
+    return out.p_c
 
 
 class OCNPolicy(SequencePolicy, PreTrainedPolicy):
@@ -176,7 +189,8 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             penalties["option_switches"] = (self.config.switch_cost, option_switches(out.p_c))
         loss, stats = window_nll(self._action_log_prob(out, component), mask, reduction, {"mean_end": out.end}, penalties,
                                  packed=self.config.packed)
-        imbalance = usage_imbalance(out.p_c, mask, self.config.usage_balance_options)
+        usage = option_usage(self.config, out, component)
+        imbalance = usage_imbalance(usage, mask, self.config.usage_balance_options, self.config.usage_balance_exact)
         stats["usage_imbalance"] = imbalance.item()
         if self.config.usage_balance:
             loss = loss + self.config.usage_balance * imbalance

@@ -24,8 +24,8 @@ from policies.sequence import CRAFT_ENCODERS, LR_SCHEDULES, SequenceConfig
 from tools.bench import RESULTS
 
 from tools.reproduce.report import checks_table, machine_words, provenance, train_time_words, write_result_files
-from tools.reproduce.runs import (Settling, TrainSettings, evaluate_run, record_dataset, settle_dir, settle_policy,
-                                  train_policy)
+from tools.reproduce.runs import (Settling, TrainSettings, cli_value, evaluate_run, record_dataset, settings_suffix,
+                                  settle_dir, settle_policy, train_policy)
 
 S1_TASKS = "AC,CD,DA"
 S1_REPO_ID = "local/craft_s1"
@@ -34,6 +34,7 @@ S1_REPO_ID = "local/craft_s1"
 # when it differs from the default, so runs made before the option existed keep their command.
 STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": SequenceConfig.obs_encoder,
                   "usage_balance": OCNConfig.usage_balance, "usage_balance_options": OCNConfig.usage_balance_options,
+                  "usage_balance_source": OCNConfig.usage_balance_source,
                   "optimizer_lr": SequenceConfig.optimizer_lr,
                   "optimizer_weight_decay": SequenceConfig.optimizer_weight_decay,
                   "window_start": SequenceConfig.window_start,
@@ -47,9 +48,15 @@ STUDY_USAGE_BALANCE = 1.0
 STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task", "data_seed",
               "lr_schedule", "obs_encoder", "usage_balance", "optimizer_lr", "rollouts", "settle_steps",
               "settle_termination_cost", "window_start", "optimizer_weight_decay", "dart_noise",
-              "usage_balance_options", "explained_termination_cost", "switch_cost")
-# What a results file written before the study settled its runs was made with.
-UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0}
+              "usage_balance_options", "explained_termination_cost", "switch_cost", "usage_balance_source",
+              "settle_usage_balance_options", "settle_usage_balance_exact", "settle_switch_cost")
+# What a results file written before the study settled its runs was made with (None: the settling run
+# keeps the first run's setting).
+UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0, "settle_usage_balance_options": None,
+             "settle_usage_balance_exact": None, "settle_switch_cost": None}
+# The settling phase's own `--policy.*` settings, by the option that sets each (`--settle-switch-cost`).
+SETTLE_POLICY_OPTIONS = {"settle_usage_balance_options": "usage_balance_options",
+                         "settle_usage_balance_exact": "usage_balance_exact", "settle_switch_cost": "switch_cost"}
 # How the demonstrations were recorded, where a study may differ from `record_demos`'s defaults.
 RECORDING_DEFAULTS = {"dart_noise": 0.0}
 # The settling phase this study ends every run with unless told otherwise (`runs.Settling`).
@@ -98,11 +105,6 @@ def study_overrides(args: argparse.Namespace) -> dict[str, str]:
     return {key: getattr(args, key) for key, default in STUDY_DEFAULTS.items() if getattr(args, key) != default}
 
 
-def settings_suffix(overrides: dict[str, Any] | None) -> str:
-    """Folder-name suffix naming non-default study settings (`_cosine`, `_usage_balance1.0`)."""
-    return "".join(f"_{value}" if isinstance(value, str) else f"_{key}{value}" for key, value in (overrides or {}).items())
-
-
 def run_dir(workdir: Path, variant: Variant, seed: int, overrides: dict[str, str] | None = None) -> Path:
     """A run's folder; runs under non-default study settings (`study_overrides`) get their own, named
     after them (`3options_T10_cosine`), so that every kind lives in one workdir."""
@@ -111,12 +113,17 @@ def run_dir(workdir: Path, variant: Variant, seed: int, overrides: dict[str, str
 
 def settling(args: argparse.Namespace) -> Settling | None:
     """The settling phase of this invocation's runs (None: `--settle-steps 0`)."""
-    return Settling(args.settle_steps, args.settle_termination_cost) if args.settle_steps else None
+    if not args.settle_steps:
+        return None
+    policy = {key: getattr(args, option) for option, key in SETTLE_POLICY_OPTIONS.items()
+              if getattr(args, option, None) is not None}
+    return Settling(args.settle_steps, args.settle_termination_cost, policy)
 
 
 def scored_dir(folder: Path, args: argparse.Namespace) -> Path:
     """Where a run's scored model lives: the settled one when the study settles."""
-    return settle_dir(folder) if settling(args) else folder
+    settle = settling(args)
+    return settle_dir(folder, settle) if settle else folder
 
 
 def run_one(args: argparse.Namespace, data: Path, variant: Variant, seed: int) -> dict[str, Any]:
@@ -208,8 +215,10 @@ def settling_words(settings: dict[str, Any]) -> str:
     steps = settings.get("settle_steps", UNSETTLED["settle_steps"])
     if not steps:
         return "no settling phase"
+    changed = "".join(f", `--policy.{key}={cli_value(settings[option])}`" for option, key in SETTLE_POLICY_OPTIONS.items()
+                      if settings.get(option) is not None)
     return (f"then a settling phase of {steps} steps from the last checkpoint at log termination cost "
-            f"{settings['settle_termination_cost']}")
+            f"{settings['settle_termination_cost']}{changed}")
 
 
 def markdown(result: dict[str, Any]) -> str:
@@ -378,9 +387,14 @@ def write_results(args: argparse.Namespace, records: list[dict[str, Any]], plann
 
 
 def balance_options_words(settings: dict[str, Any]) -> str:
-    """How many options the usage balance asks for, where that is not all of them."""
+    """How many options the usage balance asks for, where that is not all of them, and what it counts as
+    an option's use, where that is not the controller's weight."""
     options = settings.get("usage_balance_options", STUDY_DEFAULTS["usage_balance_options"])
-    return f" over {options} options' worth of usage (`--policy.usage_balance_options`)" if options else ""
+    source = settings.get("usage_balance_source", STUDY_DEFAULTS["usage_balance_source"])
+    words = f" over {options} options' worth of usage (`--policy.usage_balance_options`)" if options else ""
+    if source != STUDY_DEFAULTS["usage_balance_source"]:
+        words += f", usage counted as the options' {source} shares (`--policy.usage_balance_source`)"
+    return words
 
 
 def cost_words(settings: dict[str, Any]) -> str:
@@ -436,11 +450,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--usage-balance-options", type=int, default=STUDY_DEFAULTS["usage_balance_options"],
                     help="options' worth of usage the balance asks for (OCNConfig.usage_balance_options; 0: all of "
                          "a run's options); below a variant's option count the spare options may idle")
+    s1.add_argument("--usage-balance-source", choices=("controller", "untempered", "posterior"),
+                    default=STUDY_DEFAULTS["usage_balance_source"],
+                    help="what the balance counts as an option's use of a frame: the controller's weight, that "
+                         "weight without the temperature, or the option's responsibility for the demonstrated action "
+                         "(OCNConfig.usage_balance_source)")
     s1.add_argument("--explained-termination-cost", type=float, default=STUDY_DEFAULTS["explained_termination_cost"],
                     help="weight of the cost on terminations the ending option would have explained "
                          "(OCNConfig.explained_termination_cost; 0 is the paper's loss), from a run's first step")
     add_switch_cost_argument(s1)
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
+    s1.add_argument("--settle-usage-balance-options", type=int, default=None,
+                    help="--policy.usage_balance_options of the settling phase alone (None: the run's own), "
+                         "e.g. 3 for 6 options trained under the full balance, so that the spare options may idle")
+    s1.add_argument("--settle-usage-balance-exact", action="store_true", default=None,
+                    help="--policy.usage_balance_exact=true in the settling phase alone: the balance also charges "
+                         "usage spread over more than --settle-usage-balance-options options' worth, which merges "
+                         "two options that hold one subtask in different episodes (None: the run's own)")
+    s1.add_argument("--settle-switch-cost", type=float, default=None,
+                    help="--policy.switch_cost of the settling phase alone (None: the run's own)")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
     s1.set_defaults(func=imitation_s1)

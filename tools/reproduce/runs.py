@@ -117,7 +117,12 @@ def train_command(
         "--log_freq=50",
         f"--seed={seed}", f"--policy.window_size={settings.window_size}", f"--output_dir={out}",
     ]
-    return command + [f"--policy.{key}={value}" for key, value in {**settings.policy, **overrides}.items()]
+    return command + [f"--policy.{key}={cli_value(value)}" for key, value in {**settings.policy, **overrides}.items()]
+
+
+def cli_value(value: Any) -> str:
+    """A setting as lerobot-train's parser reads it: booleans in lower case (draccus refuses `True`)."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def training_data(settings: TrainSettings, data: Path, repo_id: str, overrides: dict[str, Any],
@@ -246,14 +251,29 @@ class Settling:
 
     steps: int
     termination_cost: float
+    # Further `--policy.*` settings of the settling run alone (`ocn-reproduce imitation-s1 --settle-*`),
+    # such as a usage balance that lets spare options idle once the split is found.
+    policy: dict[str, Any] = field(default_factory=dict)
 
     def overrides(self) -> dict[str, Any]:
-        return {"termination_cost": self.termination_cost, "termination_penalty": "log"}
+        return {"termination_cost": self.termination_cost, "termination_penalty": "log", **self.policy}
 
 
-def settle_dir(run_dir: Path) -> Path:
-    """Where a run's settling run lives (`settle_policy`)."""
-    return run_dir / "settle"
+def settings_suffix(overrides: dict[str, Any] | None) -> str:
+    """Folder-name suffix naming non-default settings (`_cosine`, `_usage_balance1.0`, a switch set on as
+    `_usage_balance_exact`)."""
+    def part(key: str, value: Any) -> str:
+        if isinstance(value, bool):
+            return f"_{key}" if value else f"_no_{key}"
+        return f"_{value}" if isinstance(value, str) else f"_{key}{value}"
+
+    return "".join(part(key, value) for key, value in (overrides or {}).items())
+
+
+def settle_dir(run_dir: Path, settling: Settling | None = None) -> Path:
+    """Where a run's settling run lives (`settle_policy`): `settle`, or a folder named after the
+    settling's further policy settings (`settle_usage_balance_options3`), so that each keeps its own."""
+    return run_dir / f"settle{settings_suffix(settling.policy if settling else None)}"
 
 
 def settle_policy(settings: TrainSettings, trained: TrainedRun, data: Path, repo_id: str, run_dir: Path, seed: int,
@@ -261,7 +281,7 @@ def settle_policy(settings: TrainSettings, trained: TrainedRun, data: Path, repo
     """Settle the finished run `trained` into `run_dir/settle` (or reuse it); the result's command
     chains both trainings and its wall time adds them up. A settling run made from the first run before
     it was trained on (more `--steps`) starts over: `settled_from.txt` keeps the command it started from."""
-    folder = settle_dir(run_dir)
+    folder = settle_dir(run_dir, settling)
     origin = folder / "settled_from.txt"
     if origin.exists() and not same_training(origin.read_text().strip(), trained.command):
         print(f"settling {run_dir} again: its run was trained on since", flush=True)
