@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from policies.ocn import OCNConfig
+from policies.ocn.configuration_ocn import USAGE_BALANCE_SOURCES
 from policies.sequence import CRAFT_ENCODERS, LR_SCHEDULES, SequenceConfig
 from tools.bench import RESULTS
 
@@ -450,7 +451,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--usage-balance-options", type=int, default=STUDY_DEFAULTS["usage_balance_options"],
                     help="options' worth of usage the balance asks for (OCNConfig.usage_balance_options; 0: all of "
                          "a run's options); below a variant's option count the spare options may idle")
-    s1.add_argument("--usage-balance-source", choices=("controller", "untempered", "posterior"),
+    s1.add_argument("--usage-balance-source", choices=USAGE_BALANCE_SOURCES,
                     default=STUDY_DEFAULTS["usage_balance_source"],
                     help="what the balance counts as an option's use of a frame: the controller's weight, that "
                          "weight without the temperature, or the option's responsibility for the demonstrated action "
