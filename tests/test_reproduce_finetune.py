@@ -137,8 +137,10 @@ def test_a_non_default_entropy_bonus_envs_or_discount_reach_ocn_finetune_and_get
     assert ppo_suffix(default) == ""
     assert "--gamma" not in finetune_command(default, SETTINGS["s1"], METHODS[0], "sparse", 1, [], tmp_path / "out")
     # Files from before the flags were added ran at the paper's values.
-    assert study_settings({"settings": {"frames": 300_000}})["entropy"] == 0.001
-    assert study_settings({"settings": {"frames": 300_000}})["gamma"] == 0.97
+    assert study_settings({"setting": "s1", "settings": {"frames": 300_000}})["entropy"] == 0.001
+    assert study_settings({"setting": "s1", "settings": {"frames": 300_000}})["gamma"] == 0.97
+    # and cloned the setting's number of options.
+    assert study_settings({"setting": "s2", "settings": {"frames": 300_000}})["n_options"] == 2
 
 
 def test_hil_is_cloned_as_hil_and_checked_against_ocn(tmp_path):
@@ -311,3 +313,58 @@ def test_dart_noise_reaches_every_clones_recording_and_the_results_header(tmp_pa
 
     assert "demonstrations recorded with DART noise 0.1" in _s1_results_markdown(["OCN"], {"dart_noise": 0.1})
     assert "DART" not in _s1_results_markdown(["OCN"])
+
+
+def test_a_pool_size_and_the_settling_settings_reach_the_clones_and_name_their_folders(tmp_path):
+    import argparse
+
+    from tools.reproduce import finetune, imitation
+
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    imitation.add_parser(sub)
+    finetune.add_parsers(sub)
+    settle = ["--settle-steps", "2000", "--settle-usage-balance-options", "3", "--settle-usage-balance-exact",
+              "--settle-switch-cost", "0.3"]
+
+    def parsed(*words: str) -> argparse.Namespace:
+        return parser.parse_args([*words, "--workdir", str(tmp_path), "--usage-balance", "1.0", "--window-start", "packed"])
+
+    methods = {method.key: method for method in METHODS}
+    six = parsed("s1", "--n-options", "6", *settle)
+    for key in ("ocn", "moe", "hil"):
+        assert finetune.clone_settings(six, SETTINGS["s1"], methods[key])[1]["n_options"] == 6
+    for key in ("compile", "ompn"):
+        assert "n_options" not in finetune.clone_settings(six, SETTINGS["s1"], methods[key])[1]
+    assert finetune.clone_dir(six, SETTINGS["s1"], methods["moe"], "craft_s1", 1).parent.name == (
+        "moe_usage_balance1.0_packed_n_options6")
+    # The setting's own pool size is spelled out nowhere, so the clones made before the option are reused.
+    for same in (parsed("s1"), parsed("s1", "--n-options", "3"), parsed("s2", "--n-options", "2")):
+        assert finetune.options_override(same, methods["moe"]) == {}
+    assert finetune.clone_dir(parsed("s1", "--n-options", "3"), SETTINGS["s1"], methods["moe"], "craft_s1", 1).parent.name == (
+        "moe_usage_balance1.0_packed")
+
+    # S1's OCN clone is imitation-s1's 6-option run, settled in the same folder under the same settings.
+    study = parsed("imitation-s1", *settle)
+    shared = imitation.run_dir(tmp_path, imitation.VARIANTS[2], 1, imitation.study_overrides(study))
+    assert finetune.clone_dir(six, SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
+    assert shared.parent.name == "6options_T10_usage_balance1.0_packed"
+    assert finetune.clone_settling(six, methods["ocn"]) == imitation.settling(study)
+    assert finetune.clone_settling(six, methods["ocn"]).policy == {
+        "usage_balance_options": 3, "usage_balance_exact": True, "switch_cost": 0.3}
+    assert finetune.clone_settling(six, methods["moe"]) is None
+    # The finetuning runs over those clones get folders of their own.
+    assert finetune.clone_suffix(six, methods["ocn"]) == (
+        "_usage_balance1.0_packed_n_options6_settle_steps2000_settle_cost0.1_settle_usage_balance_options3"
+        "_settle_usage_balance_exact_settle_switch_cost0.3")
+    assert finetune.clone_suffix(six, methods["moe"]) == "_usage_balance1.0_packed_n_options6"
+    # A 4-option pool, which imitation-s1 has no variant of, is cloned into a folder named the same way.
+    four = parsed("s1", "--n-options", "4")
+    assert finetune.clone_dir(four, SETTINGS["s1"], methods["ocn"], "craft_s1", 1).parent.name == (
+        "4options_T10_usage_balance1.0_packed")
+
+    header = _s1_results_markdown(["OCN"], {"n_options": 6, "settle_steps": 2000, "settle_termination_cost": 0.1,
+                                            "settle_usage_balance_exact": True}).split("## Checks")[0]
+    assert "6 options per cloned model, cloned by" in header
+    assert "`--policy.usage_balance_exact=true`" in header
+    assert "3 options per cloned model" in _s1_results_markdown(["OCN"])

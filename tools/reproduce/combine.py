@@ -25,7 +25,8 @@ from tools.reproduce.report import provenance
 # Settings that change what a finetuning run measures; the files combined must agree on each.
 RECIPE = ("frames", "envs", "steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task",
           "data_seed", "dart_noise", "window_start", "usage_balance", "settle_steps", "settle_termination_cost",
-          "entropy", "gamma")
+          "entropy", "gamma", "n_options", "switch_cost", "settle_usage_balance_options", "settle_usage_balance_exact",
+          "settle_switch_cost")
 
 
 def kind_of(result: dict[str, Any]) -> str | None:

@@ -87,8 +87,11 @@ SETTING_DEFAULTS = {"window_start": imitation.STUDY_DEFAULTS["window_start"], "u
 
 
 def study_settings(result: dict[str, Any]) -> dict[str, Any]:
-    """A finetuning results file's settings, with the defaults of settings added after it was written."""
-    return {**SETTING_DEFAULTS, **result["settings"]}
+    """A finetuning results file's settings, with the defaults of settings added after it was written
+    (the pool size: its Craft setting's; Dial's files say theirs)."""
+    setting = SETTINGS.get(result.get("setting"))
+    pool = {} if setting is None else {"n_options": setting.n_options}
+    return {**SETTING_DEFAULTS, **pool, **result["settings"]}
 
 
 def clone_settings(args: argparse.Namespace, setting: Setting, method: Method) -> tuple[TrainSettings, dict[str, Any]]:
@@ -126,11 +129,20 @@ def loading_override(args: argparse.Namespace) -> dict[str, str]:
     return {} if start == imitation.STUDY_DEFAULTS["window_start"] else {"window_start": start}
 
 
+def options_override(args: argparse.Namespace, method: Method) -> dict[str, int]:
+    """`--policy.n_options` of the OCN-family clones (`--n-options`), spelled out only where it is not the
+    setting's, so that the clones of the same pool size as every study before it keep their folders."""
+    n_options = getattr(args, "n_options", None)
+    if method.policy_type != "ocn" or n_options == getattr(args, "default_n_options", None):
+        return {}
+    return {"n_options": n_options}
+
+
 def clone_overrides(args: argparse.Namespace, method: Method) -> dict[str, Any]:
     """The study-wide `--policy.*` settings of the method's clones, each spelled out only when set: the
-    usage balance of the OCN family, the packed view of any clone, the switch cost of OCN's."""
+    usage balance and pool size of the OCN family, the packed view of any clone, the switch cost of OCN's."""
     balance = balance_override(args) if method.policy_type == "ocn" else {}
-    return {**balance, **loading_override(args), **switch_override(args, method)}
+    return {**balance, **loading_override(args), **switch_override(args, method), **options_override(args, method)}
 
 
 def clone_study_suffix(args: argparse.Namespace, method: Method) -> str:
@@ -152,7 +164,8 @@ def clone_suffix(args: argparse.Namespace, method: Method) -> str:
     """Folder-name suffix of a method's finetuning runs: the balance of its clones and, for OCN, their
     settling phase, so that runs over differently made clones live side by side."""
     settling = clone_settling(args, method)
-    settle = {} if settling is None else {"settle_steps": settling.steps, "settle_cost": settling.termination_cost}
+    settle = {} if settling is None else {"settle_steps": settling.steps, "settle_cost": settling.termination_cost,
+                                          **{f"settle_{key}": value for key, value in settling.policy.items()}}
     return clone_study_suffix(args, method) + imitation.settings_suffix(settle)
 
 
@@ -173,10 +186,13 @@ def ppo_suffix(args: argparse.Namespace) -> str:
 
 def clone_dir(args: argparse.Namespace, setting: Setting, method: Method, folder: str, seed: int) -> Path:
     """Where the method's clone of one demonstration set trains. S1's OCN is the imitation study's
-    main variant under the same usage balance and loading (`imitation-s1 --usage-balance W
-    --window-start S`), so both reproductions share those runs, and their settling phase too."""
+    variant of as many options (the main one, 3, unless `--n-options` says otherwise) under the same
+    usage balance and loading (`imitation-s1 --usage-balance W --window-start S`), so both reproductions
+    share those runs, and their settling phase too."""
     if setting.name == "s1" and method.name == "OCN":
-        return imitation.run_dir(args.workdir, imitation.VARIANTS[0], seed, clone_overrides(args, method))
+        overrides = clone_overrides(args, method)
+        variant = imitation.variant_with(overrides.pop("n_options", setting.n_options))
+        return imitation.run_dir(args.workdir, variant, seed, overrides)
     return args.workdir / "clone" / folder / f"{method.key}{clone_study_suffix(args, method)}" / f"seed{seed}"
 
 
@@ -389,7 +405,7 @@ def markdown(result: dict[str, Any]) -> str:
         f"# Finetuning on Craft {setting.name.upper()}: {setting.tasks}",
         "",
         f"{origin_words(result)} Skills: {', '.join(f'{{{t}}}' for _, t in setting.demos)} demonstrations, "
-        f"{setting.n_options} options per cloned model{skills_note}, cloned by "
+        f"{settings['n_options']} options per cloned model{skills_note}, cloned by "
         f"`lerobot-train` on {imitation.loading_words(settings)}{imitation.recording_words(settings)} "
         f"(OCN-family clones' option-usage balance {settings['usage_balance']}; "
         f"OCN's{imitation.cost_words(settings)}: {imitation.settling_words(settings)}); PPO through `ocn-finetune`, "
@@ -529,6 +545,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
         runnable = tuple(method for method in METHODS if method.pools or len(setting.demos) == 1)
         add_finetune_arguments(parser, runnable, 300_000)
+        parser.add_argument("--n-options", type=int, default=setting.n_options,
+                            help="options per OCN-family clone (OCN, MoE, HIL); S1's OCN clones are then "
+                                 "imitation-s1's variant of that many, e.g. 6 with --settle-usage-balance-options 3 "
+                                 "--settle-usage-balance-exact, its 6-option recipe; clones of another number than "
+                                 "the default get folders of their own")
+        parser.set_defaults(default_n_options=setting.n_options)
         imitation.add_training_arguments(parser)
         imitation.add_window_start_argument(parser)
         imitation.add_dart_noise_argument(parser)

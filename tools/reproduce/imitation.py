@@ -82,6 +82,13 @@ VARIANTS = (
 )
 
 
+def variant_with(n_options: int) -> Variant:
+    """The T = 10 variant of `n_options` options: the study's own where it has one (so that the
+    finetuning studies reuse its runs), else one named the same way."""
+    overrides = {"n_options": n_options, "temperature": 10.0}
+    return next((v for v in VARIANTS if v.overrides == overrides), Variant(f"{n_options} options, T=10", overrides))
+
+
 def _slug(name: str) -> str:
     return name.replace(", ", "_").replace(" ", "").replace("=", "")
 
@@ -461,15 +468,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                          "(OCNConfig.explained_termination_cost; 0 is the paper's loss), from a run's first step")
     add_switch_cost_argument(s1)
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
-    s1.add_argument("--settle-usage-balance-options", type=int, default=None,
-                    help="--policy.usage_balance_options of the settling phase alone (None: the run's own), "
-                         "e.g. 3 for 6 options trained under the full balance, so that the spare options may idle")
-    s1.add_argument("--settle-usage-balance-exact", action="store_true", default=None,
-                    help="--policy.usage_balance_exact=true in the settling phase alone: the balance also charges "
-                         "usage spread over more than --settle-usage-balance-options options' worth, which merges "
-                         "two options that hold one subtask in different episodes (None: the run's own)")
-    s1.add_argument("--settle-switch-cost", type=float, default=None,
-                    help="--policy.switch_cost of the settling phase alone (None: the run's own)")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
     s1.set_defaults(func=imitation_s1)
@@ -506,12 +504,23 @@ def add_dart_noise_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def add_settling_arguments(parser: argparse.ArgumentParser, steps: int, which: str) -> None:
-    """`--settle-steps` and `--settle-termination-cost` of the studies that settle OCN runs (`settling`)."""
+    """`--settle-steps`, `--settle-termination-cost` and the settling run's own `--policy.*` settings
+    (`--settle-usage-balance-options`, `--settle-usage-balance-exact`, `--settle-switch-cost`) of the
+    studies that settle OCN runs (`settling`)."""
     parser.add_argument("--settle-steps", type=int, default=steps,
                         help=f"lerobot-train steps of the settling phase of {which}: a second run from its last "
                              "checkpoint under the log termination cost (README: the settling phase); 0 skips it")
     parser.add_argument("--settle-termination-cost", type=float, default=STUDY_SETTLING.termination_cost,
                         help="--policy.termination_cost of the settling phase (with --policy.termination_penalty=log)")
+    parser.add_argument("--settle-usage-balance-options", type=int, default=None,
+                        help="--policy.usage_balance_options of the settling phase alone (None: the run's own), "
+                             "e.g. 3 for 6 options trained under the full balance, so that the spare options may idle")
+    parser.add_argument("--settle-usage-balance-exact", action="store_true", default=None,
+                        help="--policy.usage_balance_exact=true in the settling phase alone: the balance also charges "
+                             "usage spread over more than --settle-usage-balance-options options' worth, which merges "
+                             "two options that hold one subtask in different episodes (None: the run's own)")
+    parser.add_argument("--settle-switch-cost", type=float, default=None,
+                        help="--policy.switch_cost of the settling phase alone (None: the run's own)")
 
 
 def add_training_arguments(
