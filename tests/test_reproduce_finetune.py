@@ -328,7 +328,8 @@ def test_a_pool_size_and_the_settling_settings_reach_the_clones_and_name_their_f
               "--settle-switch-cost", "0.3"]
 
     def parsed(*words: str) -> argparse.Namespace:
-        return parser.parse_args([*words, "--workdir", str(tmp_path), "--usage-balance", "1.0", "--window-start", "packed"])
+        return parser.parse_args([*words, "--workdir", str(tmp_path), "--usage-balance", "1.0",
+                                  "--window-start", "packed"])
 
     methods = {method.key: method for method in METHODS}
     six = parsed("s1", "--n-options", "6", *settle)
@@ -341,8 +342,8 @@ def test_a_pool_size_and_the_settling_settings_reach_the_clones_and_name_their_f
     # The setting's own pool size is spelled out nowhere, so the clones made before the option are reused.
     for same in (parsed("s1"), parsed("s1", "--n-options", "3"), parsed("s2", "--n-options", "2")):
         assert finetune.options_override(same, methods["moe"]) == {}
-    assert finetune.clone_dir(parsed("s1", "--n-options", "3"), SETTINGS["s1"], methods["moe"], "craft_s1", 1).parent.name == (
-        "moe_usage_balance1.0_packed")
+    three = parsed("s1", "--n-options", "3")
+    assert finetune.clone_dir(three, SETTINGS["s1"], methods["moe"], "craft_s1", 1).parent.name == "moe_usage_balance1.0_packed"
 
     # S1's OCN clone is imitation-s1's 6-option run, settled in the same folder under the same settings.
     study = parsed("imitation-s1", *settle)

@@ -34,8 +34,8 @@ from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE
 from tools.ppo import PPOConfig
 from tools.reproduce import imitation
 from tools.reproduce.report import checks_table, origin_words, over_seeds, provenance, write_result_files
-from tools.reproduce.runs import (Settling, TrainedRun, TrainSettings, record_dataset, same_training, settle_policy,
-                                  train_policy)
+from tools.reproduce.runs import (Settling, TrainedRun, TrainSettings, record_dataset, same_training, settings_suffix,
+                                  settle_policy, train_policy)
 
 GRID_POINTS = 40  # env-frame grid the seeds' curves are interpolated onto before averaging
 DEFAULT_ENVS = 64  # envs per PPO iteration unless --envs says otherwise (the paper does not give its number)
@@ -151,7 +151,7 @@ def clone_study_suffix(args: argparse.Namespace, method: Method) -> str:
     its folders, so that they live beside the default ones (flat PPO, which clones nothing: none)."""
     if method.overrides is None:
         return ""
-    return imitation.settings_suffix(clone_overrides(args, method))
+    return settings_suffix(clone_overrides(args, method))
 
 
 def clone_settling(args: argparse.Namespace, method: Method) -> Settling | None:
@@ -166,7 +166,7 @@ def clone_suffix(args: argparse.Namespace, method: Method) -> str:
     settling = clone_settling(args, method)
     settle = {} if settling is None else {"settle_steps": settling.steps, "settle_cost": settling.termination_cost,
                                           **{f"settle_{key}": value for key, value in settling.policy.items()}}
-    return clone_study_suffix(args, method) + imitation.settings_suffix(settle)
+    return clone_study_suffix(args, method) + settings_suffix(settle)
 
 
 def ppo_suffix(args: argparse.Namespace) -> str:
@@ -181,7 +181,7 @@ def ppo_suffix(args: argparse.Namespace) -> str:
         changed["envs"] = args.envs
     if args.gamma != args.default_gamma:
         changed["gamma"] = args.gamma
-    return imitation.settings_suffix(changed)
+    return settings_suffix(changed)
 
 
 def clone_dir(args: argparse.Namespace, setting: Setting, method: Method, folder: str, seed: int) -> Path:
