@@ -1,6 +1,7 @@
 """Tests of the OCN policy: cell, recurrence (eq. 8-17), loss, inference state, LeRobot plumbing."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -402,8 +403,8 @@ def test_posterior_usage_balance_counts_the_options_responsibilities_not_the_con
     assert stats["usage_imbalance"] == pytest.approx(expected.item())
     assert abs(expected.item() - usage_imbalance(out.p_c, mask).item()) > 0.01
     torch.testing.assert_close(loss, plain_policy.forward(batch)[0] + expected)
-    with pytest.raises(ValueError, match="usage_balance_source must be 'controller', 'posterior' or 'untempered', "
-                                         "got 'argmax'"):
+    with pytest.raises(ValueError, match=re.escape("`usage_balance_source` must be one of ('controller', 'posterior', "
+                                                   "'untempered'), got 'argmax'.")):
         make_policy(usage_balance_source="argmax")
 
 

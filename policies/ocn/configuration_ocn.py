@@ -15,6 +15,7 @@ TERMINATION_PENALTIES = ("linear", "log")
 # What the usage balance may count as an option's use of a frame (`OCNConfig.usage_balance_source`).
 USAGE_BALANCE_SOURCES = ("controller", "posterior", "untempered")
 
+
 @PreTrainedConfig.register_subclass("ocn")
 @dataclass
 class OCNConfig(SequenceConfig):
@@ -203,9 +204,7 @@ class OCNConfig(SequenceConfig):
         if self.usage_balance_exact and not 0 < self.usage_balance_options < self.n_options:
             raise ValueError(f"usage_balance_exact needs 0 < usage_balance_options < n_options = {self.n_options}, "
                              f"got usage_balance_options = {self.usage_balance_options}.")
-        if self.usage_balance_source not in USAGE_BALANCE_SOURCES:
-            raise ValueError(f"usage_balance_source must be 'controller', 'posterior' or 'untempered', "
-                             f"got {self.usage_balance_source!r}.")
+        check_choice("usage_balance_source", self.usage_balance_source, USAGE_BALANCE_SOURCES)
         if self.expected_nll_weight < 0:
             raise ValueError(f"expected_nll_weight must be >= 0, got {self.expected_nll_weight}.")
         if self.initial_state_std < 0:
