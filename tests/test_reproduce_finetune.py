@@ -1,6 +1,7 @@
 """ocn-reproduce s1/s2 end to end on a tiny budget: clone, finetune, results, reuse."""
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -80,6 +81,15 @@ def test_s1_clone_trained_on_or_under_other_settings_is_finetuned_again(tmp_path
     assert [invocation["from_step"] for invocation in timing["invocations"]] == [0, 2]
     run = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())["runs"][0]
     assert "--steps=4" in run["clone_commands"][0]
+
+    # A workdir moved elsewhere extends its runs where they now lie, though their checkpoints' configs
+    # name the folders they were trained in: the original is left at its steps.
+    moved = tmp_path / "moved"
+    shutil.copytree(tmp_path / "work", moved, symlinks=True)
+    extended = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--steps", "6", "--workdir", str(moved))
+    assert extended.returncode == 0, extended.stderr[-2000:]
+    moved_step = moved / step.relative_to(tmp_path / "work")
+    assert json.loads(moved_step.read_text())["step"] == 6 and json.loads(step.read_text())["step"] == 4
 
     # Under the usage balance the OCN clone is the imitation study's balanced run, and both the clone
     # and its finetuning get folders of their own beside the paper-loss ones.

@@ -381,9 +381,10 @@ def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path
         print(f"training {run_dir}", flush=True)
     else:
         config = train_dir / "checkpoints" / "last" / "pretrained_model" / "train_config.json"
-        # The run's own settings, with this command's steps and save interval (a run extended to more steps).
-        schedule = [word for word in command if word.startswith(("--steps=", "--save_freq="))]
-        command = [command[0], f"--config_path={config}", "--resume=true", *schedule]
+        # The run's own settings, with this command's steps and save interval (a run extended to more steps)
+        # and paths: the checkpoint's config names the folders it was trained in, which may since have moved.
+        kept = ("--steps=", "--save_freq=", "--output_dir=", "--dataset.root=")
+        command = [command[0], f"--config_path={config}", "--resume=true", *(w for w in command if w.startswith(kept))]
         print(f"resuming {run_dir} from step {done}", flush=True)
     times = json.loads(times_path.read_text()) if times_path.exists() else {"invocations": [], "total": 0.0}
     started = time.perf_counter()
