@@ -67,7 +67,12 @@ class LeRobotStateEnv(gym.Wrapper):
         return {STATE_KEY: obs}, reward, terminated, truncated, info
 
 
-def lerobot_env(env: gym.Env, action_space: spaces.Space, max_episode_steps: int, to_env_action: Callable[[Any], Any]) -> gym.Env:
+def lerobot_env(
+    env: gym.Env,
+    action_space: spaces.Space,
+    max_episode_steps: int,
+    to_env_action: Callable[[Any], Any],
+) -> gym.Env:
     """`env` shaped for `lerobot-eval`.
 
     LeRobot's default vector env autoresets in the same step, so a finished sub-env would start a

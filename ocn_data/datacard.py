@@ -35,11 +35,14 @@ def craft_observation_layout() -> list[dict]:
     from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING, INVENTORY
 
     return [
-        {"start": CELLS.start, "stop": CELLS.stop, "meaning": "interior cell kinds (8 x 8, row-major; 0 empty, 1 boundary, 2 water, 3 stone, 4 toolshed, 5 workbench, 6 factory, 7 iron, 8 grass, 9 wood, 10 gold, 11 gem, 12-20 crafted items)"},
+        {"start": CELLS.start, "stop": CELLS.stop,
+         "meaning": "interior cell kinds (8 x 8, row-major; 0 empty, 1 boundary, 2 water, 3 stone, 4 toolshed, "
+                    "5 workbench, 6 factory, 7 iron, 8 grass, 9 wood, 10 gold, 11 gem, 12-20 crafted items)"},
         {"start": AGENT_ROW, "stop": AGENT_ROW + 1, "meaning": "agent row (interior coordinates 0-7)"},
         {"start": AGENT_COL, "stop": AGENT_COL + 1, "meaning": "agent column (interior coordinates 0-7)"},
         {"start": FACING, "stop": FACING + 1, "meaning": "facing (0 down, 1 up, 2 left, 3 right)"},
-        {"start": INVENTORY.start, "stop": INVENTORY.stop, "meaning": "inventory counts of kinds 7-20 (iron ... ladder)"},
+        {"start": INVENTORY.start, "stop": INVENTORY.stop,
+         "meaning": "inventory counts of kinds 7-20 (iron ... ladder)"},
     ]
 
 

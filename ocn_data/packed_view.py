@@ -75,7 +75,8 @@ def compact_dtype(values: np.ndarray) -> np.dtype:
 
 
 def pad_to_width(values: np.ndarray, mask: np.ndarray, width: int) -> np.ndarray:
-    """Episodes [E, T, ...] with real frames `mask` [E, T] as [E, width, ...] in `compact_dtype`, zeros after each end."""
+    """Episodes [E, T, ...] with real frames `mask` [E, T] as [E, width, ...] in `compact_dtype`, zeros after
+    each end."""
     real = mask.reshape(*mask.shape, *[1] * (values.ndim - 2))
     padded = np.zeros((values.shape[0], width, *values.shape[2:]), compact_dtype(values[mask]))
     padded[:, : values.shape[1]] = np.where(real, values, 0)

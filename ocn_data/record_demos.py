@@ -53,7 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repo-id", required=True, help="dataset id, ORG/NAME")
     p.add_argument("--seed", type=int, default=0, help="base seed; every episode attempt gets its own map seed")
     p.add_argument("--reward", choices=REWARDS, default="dense")
-    p.add_argument("--mode", choices=MODES, help="Craft: the paper's 4 resources or the full recipe book (default paper)")
+    p.add_argument(
+        "--mode", choices=MODES, help="Craft: the paper's 4 resources or the full recipe book (default paper)"
+    )
     p.add_argument("--mcap", type=Path, help="also write every step to this MCAP file (must not exist)")
     p.add_argument(
         "--dart-noise",
@@ -62,7 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="Craft: probability per step that the env executes a random action instead of the expert's, "
         "which stays the recorded label (DART; 0: the expert's own path). Dial draws its own noise",
     )
-    p.add_argument("--video", action="store_true", help="Craft: also store rendered frames as the video feature observation.image")
+    p.add_argument(
+        "--video", action="store_true", help="Craft: also store rendered frames as the video feature observation.image"
+    )
     p.add_argument(
         "--subtask-annotations",
         action="store_true",
@@ -111,7 +115,9 @@ def _craft_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable
 def _dial_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable[[], ExpertRecorder], dict, int, dict]:
     """Dial's recorder maker, features, fps and session record: given PINs, or random ones."""
     if args.video or args.mode or args.dart_noise:
-        raise ValueError("--video, --mode and --dart-noise are Craft options; Dial records states only, with noise of its own")
+        raise ValueError(
+            "--video, --mode and --dart-noise are Craft options; Dial records states only, with noise of its own"
+        )
     digits = parse_digits(args.digits)
     if args.tasks is not None:
         if args.episodes is not None:

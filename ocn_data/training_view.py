@@ -37,7 +37,9 @@ def training_view_path(root: Path) -> Path:
 
 def trained_columns(features: dict) -> list[str]:
     """The features a policy's training reads: observations, the action, LeRobot's own columns."""
-    return [name for name in features if name.startswith("observation.") or name == "action" or name in DEFAULT_FEATURES]
+    return [
+        name for name in features if name.startswith("observation.") or name == "action" or name in DEFAULT_FEATURES
+    ]
 
 
 def metadata_fingerprint(root: Path) -> str:

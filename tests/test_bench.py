@@ -26,8 +26,8 @@ def test_train_report_gives_the_packed_views_thread_setting_and_its_ratio():
     assert "on S1, batch 128, 2 workers, 1 math thread, window 24 | 2,200 real frames/s" in report
     assert "| one worker and two math threads against 2 workers and one (same runs) | 1.60x |" in report
     assert "(stacked is 1.08x)" in report and "| 0.40 ms per step |" in report
-    assert ("padding included (as before `OCNCore.unroll_frames`; alternated, best of 3) | stepping only the rows still "
-            "in their episode is 1.60x faster") in report
+    assert ("padding included (as before `OCNCore.unroll_frames`; alternated, best of 3) | stepping only the rows "
+            "still in their episode is 1.60x faster") in report
 
 
 def test_stepping_every_row_keeps_the_loss_and_is_undone():

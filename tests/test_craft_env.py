@@ -287,7 +287,7 @@ def test_step_limit_override_and_frozen_after_done():
         _, reward, terminated, truncated, _ = act(b, LEFT)
         assert (reward, terminated, truncated) == (0, False, False)
         assert b.done[0]
-        for before, after in zip(state, (b.grid, b.pos, b.facing, b.t)):
+        for before, after in zip(state, (b.grid, b.pos, b.facing, b.t), strict=True):
             np.testing.assert_array_equal(before, after)
 
 

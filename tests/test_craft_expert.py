@@ -25,7 +25,7 @@ def success_per_task(mode: str, specs: list[str], seeds: int) -> dict[str, float
     batch = CraftBatch(len(tasks), mode=mode)
     batch.reset(seeds=list(range(len(tasks))), tasks=tasks)
     success = run_to_end(batch, CraftExpert(batch)).reshape(len(specs), seeds)
-    return dict(zip(specs, success.mean(axis=1).tolist()))
+    return dict(zip(specs, success.mean(axis=1).tolist(), strict=True))
 
 
 def test_expert_solves_every_paper_task():

@@ -110,7 +110,8 @@ def test_expert_targets_the_press_pose_over_the_key_and_the_hover_pose_away_from
     offset = np.abs(batch.tip[0, :2] - key_positions()[digit, :2]).sum()
     lift = offset / PRESS_BLEND - 1.0
     assert 0.1 < lift < 0.5
-    np.testing.assert_allclose(expert.targets()[0], poses.press[digit] + lift * (poses.hover[digit] - poses.press[digit]))
+    np.testing.assert_allclose(expert.targets()[0],
+                               poses.press[digit] + lift * (poses.hover[digit] - poses.press[digit]))
     batch.set_qpos([0], poses.hover[digit])
     for _ in range(60):
         _, _, terminated, _, _ = batch.step(expert.act())

@@ -154,13 +154,15 @@ def test_select_action_returns_unnormalised_torques(dial_dataset):
                                  policy.core.project(batch[OBS_STATE]), torch.ones(2, dtype=torch.bool))[1][:2]
     chosen = params[3 + report.option, torch.arange(2), :9]
     stats = meta.stats[ACTION]
-    torch.testing.assert_close(action, chosen * torch.as_tensor(stats["std"]).float() + torch.as_tensor(stats["mean"]).float())
+    torch.testing.assert_close(action,
+                               chosen * torch.as_tensor(stats["std"]).float() + torch.as_tensor(stats["mean"]).float())
 
 
 def test_lerobot_train_checkpoint_reloads_and_runs_in_lerobot_eval(trained):
     policy = OCNPolicy.from_pretrained(trained)
     assert sorted(policy.config.tasks) == ["press 1, press 2", "press 2, press 1"]
-    assert (policy.config.obs_encoder, policy.config.action_type, policy.config.n_options) == ("identity", "continuous", 2)
+    assert (policy.config.obs_encoder, policy.config.action_type,
+            policy.config.n_options) == ("identity", "continuous", 2)
     assert policy.config.normalization_mapping == {"STATE": "MEAN_STD", "ACTION": "MEAN_STD"}
     # lerobot-train built the step schedule from the preset and saved it where a resumed run reads it.
     assert json.loads((trained / "train_config.json").read_text())["scheduler"]["type"] == "step_decay"
@@ -170,7 +172,8 @@ def test_lerobot_train_checkpoint_reloads_and_runs_in_lerobot_eval(trained):
     # --eval.recording writes the rollout as a dataset instead of rendering videos, so no OpenGL is needed.
     run_cli(
         "lerobot-eval", f"--policy.path={trained}", "--env.type=dial", "--env.task=12", "--eval.n_episodes=1",
-        "--eval.batch_size=1", "--env.max_steps=50", "--eval.recording=true", "--policy.device=cpu", f"--output_dir={out}",
+        "--eval.batch_size=1", "--env.max_steps=50", "--eval.recording=true", "--policy.device=cpu",
+        f"--output_dir={out}",
         cwd=trained.parents[3],
     )
     info = json.loads((out / "eval_info.json").read_text())
@@ -272,7 +275,8 @@ def test_ocn_with_the_dial_keys_encoder_trains_on_the_raw_state(dial_dataset):
     torch.testing.assert_close(batch[OBS_STATE], raw[OBS_STATE].float())
     loss, _ = policy.forward(batch)
     loss.backward()
-    assert torch.isfinite(loss) and all(p.grad is not None and torch.isfinite(p.grad).all() for p in policy.parameters())
+    assert torch.isfinite(loss) and all(p.grad is not None and torch.isfinite(p.grad).all()
+                                        for p in policy.parameters())
     craft_state = {OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))}
     with pytest.raises(ValueError, match=r"dial_keys encoder expects Dial's state of shape \(39,\)"):
         OCNConfig(device="cpu", obs_encoder="dial_keys", action_type="continuous", input_features=craft_state,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import itertools
 import json
 from pathlib import Path
 
@@ -152,7 +153,7 @@ def decisions_match_frames(out: Path) -> bool:
     rows = list(csv.DictReader(open(out / "curve.csv")))
     frames = [0] + [int(row["frames"]) for row in rows]
     return all(round(float(row["decisions_per_episode"]) * int(row["episodes"])) == after - before
-               for row, before, after in zip(rows, frames, frames[1:]))
+               for row, (before, after) in zip(rows, itertools.pairwise(frames), strict=True))
 
 
 def test_finetuned_checkpoint_runs_in_hard_mode_through_its_processors(finetuned):
@@ -276,7 +277,7 @@ def test_finetuning_a_hil_checkpoint_queries_the_controller_every_skill_length_s
     assert main(argv) == 0
     rows = list(csv.DictReader(open(out / "curve.csv")))
     frames = [0] + [int(row["frames"]) for row in rows]
-    for row, before, after in zip(rows, frames, frames[1:]):
+    for row, (before, after) in zip(rows, itertools.pairwise(frames), strict=True):
         decisions, episodes = round(float(row["decisions_per_episode"]) * int(row["episodes"])), int(row["episodes"])
         assert (after - before) / 3 <= decisions < (after - before) / 3 + episodes  # ceil(frames / 3) each
     policy, _, _ = load_ocn(out / "pretrained_model")

@@ -16,8 +16,8 @@ from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
 from policies.ocn.modeling_ocn import (explained_terminations, option_switches, option_usage, termination_penalty,
                                        usage_imbalance)
-from policies.ocn.heads import (DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, option_responsibilities,
-                                sample_index)
+from policies.ocn.heads import (DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob,
+                                option_responsibilities, sample_index)
 from policies.ocn.recurrence import OCNState, StepOutput
 from policies.sequence import training_windows
 
@@ -340,7 +340,8 @@ def test_usage_imbalance_is_the_kl_of_the_real_frames_option_share_to_uniform():
     mask = torch.tensor([[True, True, False]])  # the last frame is padding
     expected = 0.75 * math.log(0.75 * 2) + 0.25 * math.log(0.25 * 2)
     assert usage_imbalance(p_c, mask).item() == pytest.approx(expected)
-    assert usage_imbalance(torch.full((4, 2, 3), 1 / 3), torch.ones(2, 4, dtype=torch.bool)).item() == pytest.approx(0.0)
+    assert usage_imbalance(torch.full((4, 2, 3), 1 / 3),
+                           torch.ones(2, 4, dtype=torch.bool)).item() == pytest.approx(0.0)
     one_option = torch.nn.functional.one_hot(torch.zeros(4, 2, dtype=torch.long), 3).float()
     assert usage_imbalance(one_option, torch.ones(2, 4, dtype=torch.bool)).item() == pytest.approx(math.log(3))
 
@@ -355,7 +356,8 @@ def test_usage_imbalance_over_k_options_lets_the_spare_ones_idle():
     # All on one option: ln K - H(u) = ln 3; K = 0 and K = N are the KL to the uniform.
     one = torch.nn.functional.one_hot(torch.zeros(6, 1, dtype=torch.long), 6).float()
     assert usage_imbalance(one, mask, options=3).item() == pytest.approx(math.log(3))
-    assert usage_imbalance(one, mask, options=0).item() == usage_imbalance(one, mask, options=6).item() == pytest.approx(math.log(6))
+    assert (usage_imbalance(one, mask, options=0).item() == usage_imbalance(one, mask, options=6).item()
+            == pytest.approx(math.log(6)))
     # Two options' worth of entropy is below three's: charged the difference.
     two = torch.nn.functional.one_hot(torch.tensor([[0], [1], [0], [1], [0], [1]]), 6).float()
     assert usage_imbalance(two, mask, options=3).item() == pytest.approx(math.log(3) - math.log(2))
@@ -449,7 +451,8 @@ def test_expected_nll_charges_each_weighted_option_for_its_own_prediction():
     params[0, :2, 0] = probs.log()
     weights = torch.zeros(1, 1, 2 * N_OPTIONS)
     weights[0, 0, :2] = 0.5
-    out = StepOutput(weights, params, torch.full((1, 1, N_OPTIONS), 1 / N_OPTIONS), torch.ones(1, 1), torch.ones(1, 1, N_OPTIONS))
+    out = StepOutput(weights, params, torch.full((1, 1, N_OPTIONS), 1 / N_OPTIONS), torch.ones(1, 1),
+                     torch.ones(1, 1, N_OPTIONS))
     action = torch.zeros(1, 1, 1)
     mixed = math.log(0.5 * 0.9 + 0.5 * 0.1 / 3)
     expected = 0.5 * math.log(0.9) + 0.5 * math.log(0.1 / 3)
@@ -1199,7 +1202,7 @@ def test_hil_controller_state_changes_only_at_the_scheduled_steps():
     start = torch.ones(2, dtype=torch.bool)
     for t in range(8):
         x = batch[OBS_STATE][:, t]
-        previous, (state, out) = state, core.step(state, core.project(x), start)
+        previous, (state, _) = state, core.step(state, core.project(x), start)
         start = torch.zeros(2, dtype=torch.bool)
         if t % 3 == 0:
             ctrl = core.controller(x, previous.controller_h.unsqueeze(0))

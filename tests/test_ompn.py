@@ -244,7 +244,8 @@ def test_ocn_eval_count_free_read_out(ompn_checkpoint, ocn_checkpoint, craft_dat
     a model that has no such read-out."""
     out = tmp_path / "eval.json"
     base = ["--root", str(craft_dataset), "--repo-id", CRAFT_REPO_ID, "--rollouts", "1"]
-    assert ocn_eval.main(["--policy", str(ompn_checkpoint), *base, "--out", str(out), "--boundary-threshold", "0.5"]) == 0
+    assert ocn_eval.main(["--policy", str(ompn_checkpoint), *base, "--out", str(out),
+                          "--boundary-threshold", "0.5"]) == 0
     result = json.loads(out.read_text())
     assert result["boundary_threshold"] == 0.5 and 0.0 <= result["f1_tol0"] <= result["f1_tol1"] <= 1.0
     policy, preprocessor = reload_checkpoint(ompn_checkpoint, OMPNPolicy)
@@ -262,7 +263,8 @@ def test_ocn_eval_count_free_read_out(ompn_checkpoint, ocn_checkpoint, craft_dat
     assert result["parse_statistics"]["segments_per_episode"] == pytest.approx(segments)
     assert ocn_eval.main(["--policy", str(ompn_checkpoint), *base, "--out", str(out), "--boundary-threshold", "1"]) == 2
     assert "boundary_threshold must lie in (0, 1)" in capsys.readouterr().err
-    assert ocn_eval.main(["--policy", str(ocn_checkpoint), *base, "--out", str(out), "--boundary-threshold", "0.5"]) == 2
+    assert ocn_eval.main(["--policy", str(ocn_checkpoint), *base, "--out", str(out),
+                          "--boundary-threshold", "0.5"]) == 2
     assert "`ocn` has none" in capsys.readouterr().err
 
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from conftest import CRAFT_REPO_ID, DIAL_REPO_ID
-from lerobot.utils.constants import ACTION, OBS_STATE
+from lerobot.utils.constants import OBS_STATE
 from ocn_data.episodes_table import load_episodes, read_info, split_episodes
 from ocn_data.packed_view import PACKED_KEYS, PACKED_LENGTH, PACKED_STATE, compact_dtype, packed_view, packed_view_path
 from ocn_data.training_view import MARKER

@@ -342,7 +342,8 @@ def wood_success_before_and_after(policy, frames: int, config: PPOConfig) -> tup
         return float(batch.success.mean())
 
     random_rate = success_rate()
-    finetune(policy, WoodAhead(64, reward="sparse", max_steps=6), CRAFT, [TASK], total_frames=frames, config=config, seed=0)
+    finetune(policy, WoodAhead(64, reward="sparse", max_steps=6), CRAFT, [TASK], total_frames=frames, config=config,
+             seed=0)
     return random_rate, success_rate()
 
 

@@ -46,7 +46,8 @@ def test_dataset_reads_back_in_lerobot(recorded):
     assert ds.meta.info.splits == {"train": "0:48", "val": "48:60"}
     assert set(ds.meta.tasks.index) == {task_description(parse_task(t)) for t in ("AC", "CD", "DA")}
     assert len(list((root / "data").glob("*/*.parquet"))) == 3  # chunks of 25, 25 and 10 episodes
-    for key in ("observation.state", "action", "next.reward", "next.done", "subtask.index", "subtask.id", "subtask.end"):
+    for key in ("observation.state", "action", "next.reward", "next.done", "subtask.index", "subtask.id",
+                "subtask.end"):
         assert key in ds.meta.features
     assert not any(k.startswith("observation.") for k in ds.meta.features if k.startswith("subtask"))
 
@@ -77,7 +78,8 @@ def test_stats_match_the_data(recorded):
     episodes = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
     length = episodes[0]["length"]
     np.testing.assert_allclose(episodes[0]["stats/observation.state/q50"], np.quantile(state[:length], 0.5, axis=0))
-    np.testing.assert_allclose(episodes[1]["stats/observation.state/min"], state[length : length + episodes[1]["length"]].min(0))
+    np.testing.assert_allclose(episodes[1]["stats/observation.state/min"],
+                               state[length : length + episodes[1]["length"]].min(0))
 
 
 def test_windowed_access_pads_past_episode_end(recorded):
@@ -302,7 +304,8 @@ def test_dial_mcap_and_card(dial_recorded):
     root, mcap = dial_recorded
     ds = LeRobotDataset("local/dial", root=root)
     topics = read_mcap_messages(mcap)
-    assert {k: len(v) for k, v in topics.items()} == dict.fromkeys(("/observation", "/action", "/reward", "/subtask"), ds.num_frames)
+    assert {k: len(v) for k, v in topics.items()} == dict.fromkeys(
+        ("/observation", "/action", "/reward", "/subtask"), ds.num_frames)
     np.testing.assert_allclose(topics["/observation"][0]["state"], ds[0]["observation.state"].numpy(), rtol=1e-6)
     np.testing.assert_allclose(topics["/action"][0]["action"], ds[0]["action"].numpy(), rtol=1e-6)
     assert topics["/subtask"][0]["subtask"] == ds.meta.episodes[0]["tasks"][0].split(", ")[0]

@@ -120,8 +120,10 @@ def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_an
     assert imitation.run_dir(Path("w"), main, 1) == Path("w/imitation_s1/3options_T10/seed1")
     assert imitation.run_dir(Path("w"), main, 1, overrides(*paper, "--lr-schedule", "cosine")) == Path(
         "w/imitation_s1/3options_T10_cosine/seed1")
-    assert imitation.run_dir(Path("w"), main, 2, both) == Path("w/imitation_s1/3options_T10_cosine_craft_full_view/seed2")
-    assert imitation.run_dir(Path("w"), main, 1, overrides()) == Path("w/imitation_s1/3options_T10_usage_balance1.0/seed1")
+    assert imitation.run_dir(Path("w"), main, 2, both) == Path(
+        "w/imitation_s1/3options_T10_cosine_craft_full_view/seed2")
+    assert imitation.run_dir(Path("w"), main, 1, overrides()) == Path(
+        "w/imitation_s1/3options_T10_usage_balance1.0/seed1")
     assert overrides("--optimizer-lr", "0.001") == {"usage_balance": 1.0}
     faster = overrides("--optimizer-lr", "0.002")
     assert faster == {"usage_balance": 1.0, "optimizer_lr": 0.002}
@@ -195,7 +197,8 @@ def test_a_train_split_too_long_for_one_argument_reaches_lerobot_train_through_a
     assert command[4] == f"--config_path={tmp_path / 'train_split.json'}"
     assert not any(word.startswith("--dataset.episodes") for word in command)
     subprocess.run(command, check=True, capture_output=True)
-    saved = json.loads((tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "train_config.json").read_text())
+    saved = json.loads(
+        (tmp_path / "train" / "checkpoints" / "last" / "pretrained_model" / "train_config.json").read_text())
     assert saved["dataset"]["episodes"] == [int(e) for e in split_episodes(craft_dataset, "train")]
     assert saved["dataset"]["repo_id"] == CRAFT_REPO_ID and saved["policy"]["hidden_size"] == 8
 

@@ -100,7 +100,8 @@ def test_seeds_of_one_method_from_several_files_make_one_row(tmp_path):
     assert [source["methods"] for source in result["sources"]] == [["OCN", "MoE"], ["OCN"]]
     assert "| OCN | sparse | 3 |" in (tmp_path / "out" / "finetune_s2.md").read_text()
     # The combined file keeps every run's curve, so it combines again with later seeds.
-    again = _combine(tmp_path, tmp_path / "out" / "finetune_s2.json", _study(tmp_path / "c.json", [_run("MoE", 0.5, 2)]))
+    again = _combine(tmp_path, tmp_path / "out" / "finetune_s2.json",
+                     _study(tmp_path / "c.json", [_run("MoE", 0.5, 2)]))
     assert again["summary"]["MoE | sparse"]["seeds"] == [1, 2]
     assert again["summary"]["OCN | sparse"] == row
 
@@ -178,7 +179,8 @@ def test_parsing_studies_combine_into_one_with_the_checks_made_again(tmp_path):
     assert (tmp_path / "out" / "parsing_s1.png").stat().st_size > 0
     # The combined file combines again.
     more = _parsing_study(tmp_path / "c" / "parsing_s1.json", [_parsing_run("HIL", 2, 0.6, 0.5)])
-    assert main(["combine", str(tmp_path / "out" / "parsing_s1.json"), str(more), "--results", str(tmp_path / "again")]) == 0
+    assert main(["combine", str(tmp_path / "out" / "parsing_s1.json"), str(more),
+                 "--results", str(tmp_path / "again")]) == 0
     assert json.loads((tmp_path / "again" / "parsing_s1.json").read_text())["summary"]["HIL"]["seeds"] == [1, 2]
 
 

@@ -17,7 +17,8 @@ TINY = ["--seeds", "1", "--steps", "2", "--batch-size", "8", "--num-workers", "0
 
 def _reproduce(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess:
     script = Path(sys.executable).with_name("ocn-reproduce")
-    command = [str(script), "s1", *TINY, "--workdir", str(tmp_path / "work"), "--results", str(tmp_path / "results"), *extra]
+    command = [str(script), "s1", *TINY, "--workdir", str(tmp_path / "work"),
+               "--results", str(tmp_path / "results"), *extra]
     return subprocess.run(command, capture_output=True, text=True, timeout=600)
 
 
@@ -97,7 +98,8 @@ def test_s1_clone_trained_on_or_under_other_settings_is_finetuned_again(tmp_path
     assert balanced.returncode == 0, balanced.stderr[-2000:]
     clone_dir = tmp_path / "work" / "imitation_s1" / "3options_T10_usage_balance1.0" / "seed1"
     assert "--policy.usage_balance=1.0" in (clone_dir / "train_command.txt").read_text()
-    assert (tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_frames1500_envs8" / "seed1" / "run" / "finetune.json").exists()
+    balanced_out = tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_frames1500_envs8" / "seed1"
+    assert (balanced_out / "run" / "finetune.json").exists()
     assert json.loads(step.read_text())["step"] == 4  # the paper-loss clone is left as it was
 
     # --settle-steps settles the OCN clone as imitation-s1 does (into the same run's settle folder), and
@@ -106,7 +108,8 @@ def test_s1_clone_trained_on_or_under_other_settings_is_finetuned_again(tmp_path
                          "--settle-steps", "2")
     assert settled.returncode == 0, settled.stderr[-2000:]
     assert "--policy.termination_penalty=log" in (clone_dir / "settle" / "train_command.txt").read_text()
-    out = tmp_path / "work" / "finetune_s1" / "ocn_sparse_usage_balance1.0_settle_steps2_settle_cost0.1_frames1500_envs8" / "seed1"
+    out = (tmp_path / "work" / "finetune_s1"
+           / "ocn_sparse_usage_balance1.0_settle_steps2_settle_cost0.1_frames1500_envs8" / "seed1")
     assert (out / "run" / "finetune.json").exists()
     result = json.loads((tmp_path / "results" / "finetune_s1.json").read_text())
     assert " && " in result["runs"][0]["clone_commands"][0]
@@ -124,7 +127,8 @@ def test_s2_pools_the_options_of_both_cloned_models(tmp_path):
     args = argparse.Namespace(frames=100, envs=4, entropy=0.001, gamma=0.97)
     clones = [TrainedRun(tmp_path / name / "pretrained_model", "", None) for name in ("ab", "cd")]
     command = finetune_command(args, SETTINGS["s2"], METHODS[0], "sparse", 1, clones, tmp_path / "out")
-    assert [command[i + 1] for i, word in enumerate(command) if word == "--checkpoint"] == [str(c.checkpoint) for c in clones]
+    assert ([command[i + 1] for i, word in enumerate(command) if word == "--checkpoint"]
+            == [str(c.checkpoint) for c in clones])
     assert command[command.index("--tasks") + 1] == "BADC,ACBD,CABD"
     assert command[command.index("--temperature") + 1] == "1"  # spelled out: older default runs are refused
     assert "--entropy" not in command  # the paper's bonus: runs made before it could change are reused
@@ -217,7 +221,8 @@ def test_results_header_notes_compiles_options_only_when_compile_ran():
     note = "3 options per cloned model (compILE: one per latent category of its decoder), cloned by"
     assert note in header(["OCN", "compILE"])
     assert "3 options per cloned model, cloned by" in header(["OCN", "MoE"]) and "compILE" not in header(["OCN", "MoE"])
-    assert "3 options per cloned model (OMPN: none, its whole network is finetuned), cloned by" in header(["OCN", "OMPN"])
+    assert ("3 options per cloned model (OMPN: none, its whole network is finetuned), cloned by"
+            in header(["OCN", "OMPN"]))
 
 
 def test_ompn_is_cloned_with_its_own_defaults_finetuned_whole_in_s1_only_and_checked_against_ocn(craft_dataset,
@@ -277,16 +282,20 @@ def test_packed_clones_load_the_packed_view_in_folders_of_their_own_and_share_im
         assert "window_start" not in finetune.clone_settings(windows, SETTINGS["s2"], methods[key])[1]
     assert finetune.clone_dir(packed, SETTINGS["s2"], methods["moe"], "craft_s2_ab", 1) == (
         tmp_path / "clone" / "craft_s2_ab" / "moe_usage_balance1.0_packed" / "seed1")
-    assert finetune.clone_dir(packed, SETTINGS["s2"], methods["compile"], "craft_s2_ab", 1).parent.name == "compile_packed"
-    assert finetune.clone_dir(windows, SETTINGS["s2"], methods["moe"], "craft_s2_ab", 1).parent.name == "moe_usage_balance1.0"
+    assert (finetune.clone_dir(packed, SETTINGS["s2"], methods["compile"], "craft_s2_ab", 1).parent.name
+            == "compile_packed")
+    assert (finetune.clone_dir(windows, SETTINGS["s2"], methods["moe"], "craft_s2_ab", 1).parent.name
+            == "moe_usage_balance1.0")
     assert finetune.clone_study_suffix(packed, methods["flat"]) == ""
 
     # S1's OCN clone is the run that imitation-s1 trains under the same balance and loading.
     study = parsed("imitation-s1", "--window-start", "packed")
     shared = imitation.run_dir(tmp_path, imitation.VARIANTS[0], 1, imitation.study_overrides(study))
-    assert finetune.clone_dir(parsed("s1", "--window-start", "packed"), SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
+    assert finetune.clone_dir(parsed("s1", "--window-start", "packed"), SETTINGS["s1"], methods["ocn"],
+                              "craft_s1", 1) == shared
     assert shared.parent.name == "3options_T10_usage_balance1.0_packed"
-    assert parsing.run_dir(parsed("parsing-s1", "--window-start", "packed"), methods["ompn"], 1).parent.name == "ompn_packed"
+    assert (parsing.run_dir(parsed("parsing-s1", "--window-start", "packed"), methods["ompn"], 1).parent.name
+            == "ompn_packed")
     # --switch-cost reaches OCN's clones alone, and S1's OCN clone is still imitation-s1's run under it.
     switching = parsed("s2", "--window-start", "packed", "--switch-cost", "0.3")
     assert finetune.clone_settings(switching, SETTINGS["s2"], methods["ocn"])[1]["switch_cost"] == 0.3
@@ -353,7 +362,8 @@ def test_a_pool_size_and_the_settling_settings_reach_the_clones_and_name_their_f
     for same in (parsed("s1"), parsed("s1", "--n-options", "3"), parsed("s2", "--n-options", "2")):
         assert finetune.options_override(same, methods["moe"]) == {}
     three = parsed("s1", "--n-options", "3")
-    assert finetune.clone_dir(three, SETTINGS["s1"], methods["moe"], "craft_s1", 1).parent.name == "moe_usage_balance1.0_packed"
+    assert (finetune.clone_dir(three, SETTINGS["s1"], methods["moe"], "craft_s1", 1).parent.name
+            == "moe_usage_balance1.0_packed")
 
     # S1's OCN clone is imitation-s1's 6-option run, settled in the same folder under the same settings.
     study = parsed("imitation-s1", *settle)

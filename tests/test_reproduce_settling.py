@@ -55,7 +55,8 @@ def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path
     assert "settling phase of 2 steps from the last checkpoint at log termination cost 0.3" in text
     assert "| 3 options, T=10, before settling | 1 |" in text
     assert "option x subtask success of the main variant's seed 1" in text
-    assert (tmp_path / "results" / "imitation_s1_option_table.png").read_bytes() == (run / "settle" / "eval.png").read_bytes()
+    assert ((tmp_path / "results" / "imitation_s1_option_table.png").read_bytes()
+            == (run / "settle" / "eval.png").read_bytes())
 
     # Reused as it is; a file of settled runs refuses runs made without settling, which go to their own file.
     again = _reproduce(tmp_path, "--settle-steps", "2", "--settle-termination-cost", "0.3")
@@ -70,7 +71,8 @@ def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path
                        "0.2", "--results", str(tmp_path / "results_spare"))
     assert spare.returncode == 0, spare.stderr[-2000:]
     spare_dir = run / "settle_usage_balance_options2_usage_balance_exact_switch_cost0.2"
-    spare_config = json.loads((spare_dir / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
+    spare_config = json.loads(
+        (spare_dir / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
     assert (spare_config["usage_balance_options"], spare_config["usage_balance_exact"], spare_config["switch_cost"],
             spare_config["n_options"]) == (2, True, 0.2, 3)
     assert f"--policy.path={first / 'checkpoints' / 'last' / 'pretrained_model'}" in (

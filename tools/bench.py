@@ -317,7 +317,8 @@ def _dial_markdown(r: dict) -> str:
     conditions = conditions_paragraph(r)
     rows = "".join(
         f"| expert success, {x['pins']} random two-digit PINs from 1, 2, 4, 8, {name} | **{x['success']:.3f}** "
-        f"(median {x['steps_median']:.0f} steps, p99 {x['steps_p99']:.0f}, max {x['steps_max']} of {x['step_limit']}) |\n"
+        f"(median {x['steps_median']:.0f} steps, p99 {x['steps_p99']:.0f}, "
+        f"max {x['steps_max']} of {x['step_limit']}) |\n"
         for name, x in (("noise-free", r["expert"]),
                         (f"with DART noise as recorded (levels {_levels(r['expert_dart'])})", r["expert_dart"]),
                         (f"with the reference demonstrations' DART noise (levels "
@@ -332,7 +333,8 @@ def _dial_markdown(r: dict) -> str:
         f"({e['single_env_steps_per_s'] * e['frame_skip']:,.0f} physics steps/s) |\n"
         f"| 16 envs, `DialVectorEnv.step` | {e['vector_env_16_steps_per_s']:,.0f} env steps/s |\n"
         f"| bare `mujoco.mj_step(nstep={e['frame_skip']})`, same model, same controls and start | "
-        f"{e['replay_bare_mj_step_env_steps_per_s']:,.0f} env steps/s ({e['bare_mj_step_physics_steps_per_s']:,.0f} physics steps/s) |\n"
+        f"{e['replay_bare_mj_step_env_steps_per_s']:,.0f} env steps/s "
+        f"({e['bare_mj_step_physics_steps_per_s']:,.0f} physics steps/s) |\n"
         f"| `DialEnv` replaying those controls | {e['replay_env_steps_per_s']:,.0f} env steps/s |\n"
         f"| physics rate of the env / bare `mj_step` | **{e['physics_ratio']:.3f}** (wrapper overhead "
         f"{e['wrapper_overhead']:.1%}; goal: under 20%) |\n"
@@ -775,7 +777,8 @@ def main(argv: list[str] | None = None) -> None:
     stacked = _bench(sub, "stacked", run_stacked_bench, "stacked option cells against a per-option loop, swept")
     stacked.add_argument("--options", type=_int_list, default=[3, 6],
                          help="options in the pool, e.g. 3,6 (the S1 policy's 3 and the paper's 6-option ablation)")
-    stacked.add_argument("--batch-sizes", type=_int_list, default=[1, 8, 64, 512], help="windows per batch, e.g. 1,8,64")
+    stacked.add_argument("--batch-sizes", type=_int_list, default=[1, 8, 64, 512],
+                         help="windows per batch, e.g. 1,8,64")
     stacked.add_argument("--threads", type=_int_list, default=[1, 2], help="math threads, e.g. 1,2")
     stacked.add_argument("--window", type=int, default=32, help="steps per window")
     stacked.add_argument("--rounds", type=int, default=3, help="alternated timings of each; the fastest counts")

@@ -8,8 +8,8 @@ For every inner true boundary step of the demonstrations it reads, from the soft
 the probability of the demonstrated action under the running option continued and restarted, and
 under the best other restarted option, and whether the parse's label (argmax p^c_t) there is no
 longer the running option's (`handed_over`: the step went to another option; `ocn-eval`'s offsets
-instead measure to the nearest predicted boundary). Steps are grouped, as in `ocn-eval`, by the demonstrated action one step
-before the boundary step.
+instead measure to the nearest predicted boundary). Steps are grouped, as in `ocn-eval`, by the demonstrated action
+one step before the boundary step.
 
     python -m tools.boundary_probe --policy CKPT --root DIR [--split val] [--max-episodes 1200] [--out FILE.json]
 """

@@ -286,9 +286,13 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
         stats["label_by_subtask"] = {
             str(subtask): _shares(labels[subtasks == subtask], labels.max() + 1) for subtask in np.unique(subtasks)
         }
-        thirds = np.concatenate([_segment_thirds(episodes.subtask_index[i, :n]) for i, n in enumerate(episodes.lengths)])
+        thirds = np.concatenate(
+            [_segment_thirds(episodes.subtask_index[i, :n]) for i, n in enumerate(episodes.lengths)]
+        )
         stats["label_by_subtask_third"] = {
-            str(subtask): [_shares(labels[(subtasks == subtask) & (thirds == third)], labels.max() + 1) for third in range(3)]
+            str(subtask): [
+                _shares(labels[(subtasks == subtask) & (thirds == third)], labels.max() + 1) for third in range(3)
+            ]
             for subtask in np.unique(subtasks)
         }
     offsets = _boundary_offsets(episodes, parses)

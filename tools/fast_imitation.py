@@ -218,7 +218,8 @@ def peak_table(paths: list[Path], peak: str, metrics: tuple[str, ...] = CURVE_ME
     for path in paths:
         curve = json.loads(path.read_text())["curve"]
         best = max(curve, key=lambda point: point[peak])
-        lines.append(f"| {path.stem} | {best['step']} | " + " | ".join(f"{best[metric]:.3f}" for metric in metrics) + " |")
+        lines.append(f"| {path.stem} | {best['step']} | "
+                     + " | ".join(f"{best[metric]:.3f}" for metric in metrics) + " |")
     return "\n".join(lines)
 
 

@@ -13,7 +13,8 @@ Craft's grid and action; Dial's fingertip and keys in 3D, joint angles, fingerti
 and motor controls). Every world's entity paths ([model]: only with --policy):
 
     segments/episode         StateChange   "episode 16: get wood, get iron", from the episode's first step
-    segments/subtask         StateChange   the true subtask ("A get wood", "press 1"), from the first step of each segment
+    segments/subtask         StateChange   the true subtask ("A get wood", "press 1"), from the first step of each
+                                           segment
     segments/option          StateChange   the chosen option argmax p^c ("option 2"), from each switch [model]
     p_c/option_<k>           Scalars       p^c_t of option k, the controller's option distribution [model]
     termination/e_t          Scalars       e_t, the termination probability (1 at an episode's first step) [model]
@@ -258,7 +259,8 @@ def _summary_markdown(
         return text
     options = [option_label(k) for k in range(usage.shape[1])]
     rows = [
-        f"| {world.subtask_labels[s]} | {usage[s].sum()} | " + " | ".join(f"{p:.2f}" for p in usage[s] / usage[s].sum()) + " |"
+        f"| {world.subtask_labels[s]} | {usage[s].sum()} | "
+        + " | ".join(f"{p:.2f}" for p in usage[s] / usage[s].sum()) + " |"
         for s in np.flatnonzero(usage.sum(1))
     ]
     return "\n".join([

@@ -58,7 +58,12 @@ class RolloutMcapWriter(JsonMcapLog):
             ),
             "/reward": step_schema(
                 "Reward",
-                {**TASK, "reward": {"type": "number"}, "done": {"type": "boolean"}, "success": {"type": ["boolean", "null"]}},
+                {
+                    **TASK,
+                    "reward": {"type": "number"},
+                    "done": {"type": "boolean"},
+                    "success": {"type": ["boolean", "null"]},
+                },
             ),
         }
         super().__init__(path, fps, channels, library="ocn rollouts")
@@ -69,7 +74,10 @@ class RolloutMcapWriter(JsonMcapLog):
     def write(self, task: str, trace: RolloutTrace, success: np.ndarray) -> None:
         """Every env of the batch as one episode, in row order, with only the steps it was running."""
         active = np.stack(trace.active, axis=1)
-        columns = {name: np.stack(getattr(trace, name), axis=1) for name in ("state", "action", "p_c", "option", "end", "reward", "done")}
+        columns = {
+            name: np.stack(getattr(trace, name), axis=1)
+            for name in ("state", "action", "p_c", "option", "end", "reward", "done")
+        }
         for row in range(active.shape[0]):
             steps = np.flatnonzero(active[row])
             for frame, t in enumerate(steps):

@@ -112,7 +112,7 @@ def free_run_success(
     policy.reset()
     success = (batch.progress == batch.task_len).reshape(len(tasks), episodes)
     if log is not None:
-        for k, task in enumerate(tasks):
+        for k in range(len(tasks)):
             rows_of_task = slice(k * episodes, (k + 1) * episodes)
             log.write(named[k * episodes], trace.rows(rows_of_task), success[k])
     return {task: float(success[k].mean()) for k, task in enumerate(tasks)}
@@ -218,6 +218,7 @@ def oracle_controller_success(
     option, option_h = torch.zeros(len(rows), dtype=torch.long), None
     decide = torch.ones(len(rows), dtype=torch.bool)
     length, step = policy.config.fixed_skill_length, 0
+    progress = batch.progress.copy()
     while not batch.done.all():
         state = policy_inputs(obs, named, preprocessor)[OBS_STATE]
         if option_h is not None and switch == "progress":

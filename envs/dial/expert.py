@@ -103,7 +103,11 @@ class DialExpert:
         self._noise_left = np.zeros(n, dtype=np.int64)
         self._rngs = [np.random.default_rng(i) for i in range(n)]
 
-    def reset(self, env_ids: Sequence[int] | np.ndarray | None = None, seeds: Sequence[int | None] | None = None) -> None:
+    def reset(
+        self,
+        env_ids: Sequence[int] | np.ndarray | None = None,
+        seeds: Sequence[int | None] | None = None,
+    ) -> None:
         """Start the selected envs' episodes with a fresh noise level.
 
         ``seeds[i]`` reseeds env ``env_ids[i]``'s noise Generator, so an episode's noise depends on

@@ -43,7 +43,8 @@ def parse_pin(spec: str) -> tuple[int, ...]:
     if text.startswith("press"):
         parts = [p.strip() for p in text.split(",")]
         if not all(p in SUBTASK_NAMES for p in parts):
-            raise ValueError(f"unknown Dial task {spec!r}; write a PIN as digits (\"124\") or as \"press 1, press 2, press 4\"")
+            raise ValueError(f"unknown Dial task {spec!r}; write a PIN as digits (\"124\") or as "
+                             "\"press 1, press 2, press 4\"")
         return tuple(SUBTASK_NAMES.index(p) for p in parts)
     if not text.isdigit() or not text.isascii():
         raise ValueError(f"a Dial task is a PIN of digits 0-9 such as \"124\"; got {spec!r}")

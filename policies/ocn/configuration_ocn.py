@@ -194,7 +194,8 @@ class OCNConfig(SequenceConfig):
             raise ValueError(f"switch_cost must be >= 0, got {self.switch_cost}.")
         for name in ("forced_restart_rate", "termination_cost", "explained_termination_cost", "switch_cost"):
             if getattr(self, name) and self.hierarchy != "ocn":
-                raise ValueError(f"{name} is for hierarchy='ocn', whose options end by themselves, not {self.hierarchy!r}.")
+                raise ValueError(f"{name} is for hierarchy='ocn', whose options end by themselves, "
+                                 f"not {self.hierarchy!r}.")
         if self.usage_balance < 0:
             raise ValueError(f"usage_balance must be >= 0, got {self.usage_balance}.")
         if not 0 <= self.usage_balance_options <= self.n_options:

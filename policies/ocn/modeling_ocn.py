@@ -187,8 +187,8 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
                                                    explained_terminations(out, component))
         if self.config.switch_cost:
             penalties["option_switches"] = (self.config.switch_cost, option_switches(out.p_c))
-        loss, stats = window_nll(self._action_log_prob(out, component), mask, reduction, {"mean_end": out.end}, penalties,
-                                 packed=self.config.packed)
+        loss, stats = window_nll(self._action_log_prob(out, component), mask, reduction, {"mean_end": out.end},
+                                 penalties, packed=self.config.packed)
         usage = option_usage(self.config, out, component)
         imbalance = usage_imbalance(usage, mask, self.config.usage_balance_options, self.config.usage_balance_exact)
         stats["usage_imbalance"] = imbalance.item()

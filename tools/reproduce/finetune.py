@@ -250,7 +250,8 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
                          f"while this reproduction would run:\n  {shown}\nMove it away or pass another --workdir.")
     clones_path = out / "clones.json"
     if summary_path.exists() and clones_path.exists() and not all(
-        same_training(before, run.command) for before, run in zip(json.loads(clones_path.read_text()), clones)
+        same_training(before, run.command)
+        for before, run in zip(json.loads(clones_path.read_text()), clones, strict=True)
     ):
         print(f"finetuning {out} again: its clones were trained on since", flush=True)
         summary_path.unlink()
@@ -435,14 +436,10 @@ def budget_table(summary: dict[str, dict[str, Any]], labels: list[str]) -> list[
     lines = ["| method | reward | seeds | mean return | success | " + " | ".join(labels) + " | PPO frames/s |",
              "|---|---|---|---|---|" + "---|" * len(labels) + "---|"]
     for row in summary.values():
-        b = row["at_budget"]
-
-        def cell(key: str) -> str:
-            return f"{b[key]['mean']:.3f} ({b[key]['std']:.3f})"
-
-        per_task = " | ".join(cell(f"success[{label}]") for label in labels)
-        lines.append(f"| {row['method']} | {row['reward']} | {len(row['seeds'])} | {cell('mean_return')} | "
-                     f"{cell('success')} | {per_task} | {row['frames_per_s']:.0f} |")
+        cells = {key: f"{value['mean']:.3f} ({value['std']:.3f})" for key, value in row["at_budget"].items()}
+        per_task = " | ".join(cells[f"success[{label}]"] for label in labels)
+        lines.append(f"| {row['method']} | {row['reward']} | {len(row['seeds'])} | {cells['mean_return']} | "
+                     f"{cells['success']} | {per_task} | {row['frames_per_s']:.0f} |")
     return lines
 
 

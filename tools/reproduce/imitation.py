@@ -180,12 +180,15 @@ def must_show(summary: dict[str, Any]) -> list[dict[str, Any]]:
             ("option x subtask off-diagonal <= 0.1", "off_diagonal_max", 0.1, False),
         ):
             value = main[metric]["mean"]
-            checks.append({"check": f"3 options, T=10: {label}", "value": value, "holds": value >= bar if above else value <= bar})
+            checks.append({"check": f"3 options, T=10: {label}", "value": value,
+                           "holds": value >= bar if above else value <= bar})
         value = main["success_rate_min"]
-        checks.append({"check": "3 options, T=10: free-run success >= 0.95 on every task", "value": value, "holds": value >= 0.95})
+        checks.append({"check": "3 options, T=10: free-run success >= 0.95 on every task", "value": value,
+                       "holds": value >= 0.95})
     for name, label, test in (
         ("6 options, T=10", "NMI >= 0.9", lambda v: v >= 0.9),
-        ("2 options, T=10", "NMI clearly (0.1) below 3 options'", lambda v: main is not None and v <= main["nmi"]["mean"] - 0.1),
+        ("2 options, T=10", "NMI clearly (0.1) below 3 options'",
+         lambda v: main is not None and v <= main["nmi"]["mean"] - 0.1),
         ("3 options, T=1", "NMI below T=10's", lambda v: main is not None and v < main["nmi"]["mean"]),
     ):
         if name in summary:
@@ -223,8 +226,8 @@ def settling_words(settings: dict[str, Any]) -> str:
     steps = settings.get("settle_steps", UNSETTLED["settle_steps"])
     if not steps:
         return "no settling phase"
-    changed = "".join(f", `--policy.{key}={cli_value(settings[option])}`" for option, key in SETTLE_POLICY_OPTIONS.items()
-                      if settings.get(option) is not None)
+    changed = "".join(f", `--policy.{key}={cli_value(settings[option])}`"
+                      for option, key in SETTLE_POLICY_OPTIONS.items() if settings.get(option) is not None)
     return (f"then a settling phase of {steps} steps from the last checkpoint at log termination cost "
             f"{settings['settle_termination_cost']}{changed}")
 
@@ -334,7 +337,8 @@ def earlier_runs(args: argparse.Namespace, planned: list[tuple[Variant, int]]) -
                          "--results, or move that file away to start the study over.")
     making = {(variant.name, seed) for variant, seed in planned}
     stamp = {key: earlier[key] for key in ("command", "date", "machine")}
-    return [{"made_by": stamp, **record} for record in earlier["runs"] if (record["variant"], record["seed"]) not in making]
+    return [{"made_by": stamp, **record} for record in earlier["runs"]
+            if (record["variant"], record["seed"]) not in making]
 
 
 def in_study_order(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -363,7 +367,8 @@ def imitation_s1(args: argparse.Namespace) -> int:
     return 0
 
 
-def write_results(args: argparse.Namespace, records: list[dict[str, Any]], planned: int, wall_s: float) -> dict[str, Any]:
+def write_results(args: argparse.Namespace, records: list[dict[str, Any]], planned: int,
+                  wall_s: float) -> dict[str, Any]:
     """`results/imitation_s1.{json,md,png}` (and the option table) from the runs finished so far."""
     summary = summarise(records)
     result = {

@@ -351,7 +351,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"{origin_words(result)} Every method trained by `lerobot-train` on the S1 train split for {settings['steps']} "
         f"steps of {settings['batch_size']} {imitation.loading_words(settings)}{imitation.recording_words(settings)} "
         f"(window {settings['window_size']}), "
-        f"a checkpoint every {settings['eval_every']} steps; each checkpoint's parse of the {result['val_episodes']} validation episodes "
+        f"a checkpoint every {settings['eval_every']} steps; each checkpoint's parse of the "
+        f"{result['val_episodes']} validation episodes "
         f"scored with the shared metrics (`tools.episode_parsing`), no env rollouts. Runs finished: "
         f"{result['runs_finished']} of {result['runs_planned']}; wall time of "
         + ("the invocations" if "sources" in result else "this invocation")
