@@ -54,6 +54,7 @@ def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path
     text = (tmp_path / "results" / "imitation_s1.md").read_text()
     assert "settling phase of 2 steps from the last checkpoint at log termination cost 0.3" in text
     assert "| 3 options, T=10, before settling | 1 |" in text
+    assert text.rstrip().endswith("| 3 options, T=10 seed 1 |")  # the invocation that trained it
     assert "option x subtask success of the main variant's seed 1" in text
     assert ((tmp_path / "results" / "imitation_s1_option_table.png").read_bytes()
             == (run / "settle" / "eval.png").read_bytes())
@@ -62,6 +63,8 @@ def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path
     again = _reproduce(tmp_path, "--settle-steps", "2", "--settle-termination-cost", "0.3")
     assert again.returncode == 0
     assert not [line for line in again.stdout.splitlines() if line.startswith(("training ", "resuming ", "rescoring "))]
+    text = (tmp_path / "results" / "imitation_s1.md").read_text()
+    assert text.rstrip().endswith("| 3 options, T=10 seed 1 (found trained) |")
     unsettled = _reproduce(tmp_path, "--settle-steps", "0")
     assert unsettled.returncode != 0 and "settle_steps 2 there, 0 here" in unsettled.stderr
 
@@ -81,6 +84,8 @@ def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path
     assert ("log termination cost 0.3, `--policy.usage_balance_options=2`, `--policy.usage_balance_exact=true`, "
             "`--policy.switch_cost=0.2`"
             in (tmp_path / "results_spare" / "imitation_s1.md").read_text())
+    # Settled by this invocation from a run an earlier one trained: not found trained.
+    assert (tmp_path / "results_spare" / "imitation_s1.md").read_text().rstrip().endswith("| 3 options, T=10 seed 1 |")
     refused = _reproduce(tmp_path, "--settle-steps", "2", "--settle-termination-cost", "0.3",
                          "--results", str(tmp_path / "results_spare"))
     assert refused.returncode != 0 and "settle_switch_cost 0.2 there, None here" in refused.stderr

@@ -286,7 +286,8 @@ def markdown(result: dict[str, Any]) -> str:
     table_words = ("" if table_seed is None else f", `imitation_s1_option_table.png` (option x subtask success of "
                    f"the main variant's seed {table_seed}, the first whose run is in this workdir)")
     lines += ["", f"Plots: `imitation_s1.png` (every metric, seeds as dots){table_words}.", "", "## Invocations", "",
-              "| command | date | machine | runs it made |", "|---|---|---|---|"]
+              "| command | date | machine | runs it wrote (found trained: an earlier invocation trained it) |",
+              "|---|---|---|---|"]
     for made_by, runs in invocations(result["runs"]):
         lines.append(f"| `{made_by['command']}` | {made_by['date']} | {machine_words(made_by['machine'])} | "
                      f"{'; '.join(runs)} |")
@@ -294,11 +295,13 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def invocations(records: list[dict[str, Any]]) -> list[tuple[dict[str, Any], list[str]]]:
-    """Each distinct invocation that made some of the records (`made_by`), with the runs it made."""
+    """Each distinct invocation that wrote some of the records (`made_by`), with the runs it wrote, those
+    it found trained marked (records written before the mark existed carry none)."""
     made: dict[str, tuple[dict[str, Any], list[str]]] = {}
     for r in records:
         key = json.dumps(r["made_by"], sort_keys=True)
-        made.setdefault(key, (r["made_by"], []))[1].append(f"{r['variant']} seed {r['seed']}")
+        found = " (found trained)" if r.get("trained_by_this_invocation") is False else ""
+        made.setdefault(key, (r["made_by"], []))[1].append(f"{r['variant']} seed {r['seed']}{found}")
     return list(made.values())
 
 

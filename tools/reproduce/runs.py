@@ -89,14 +89,16 @@ class TrainSettings:
 class TrainedRun:
     """A finished training run: its checkpoint, the command shown in records, its wall time (None when
     an earlier reproduction trained all of it and kept no timing), the step its timing starts from (not
-    0 when it resumed a run whose first steps were trained before invocations were timed) and the
-    machines that trained it."""
+    0 when it resumed a run whose first steps were trained before invocations were timed), the
+    machines that trained it and whether this invocation trained any of its steps (False: found
+    finished)."""
 
     checkpoint: Path
     command: str
     train_wall_s: float | None
     trained_on: list[str] = field(default_factory=list)
     timed_from_step: int = 0
+    trained_now: bool = False
 
 
 def train_command(
@@ -176,9 +178,10 @@ def train_policy(
     dataset's view that the policy trains on (`training_data`)."""
     command, shown = run_command(settings, data, repo_id, run_dir, seed, overrides, init)
     check_reusable(run_dir, shown)
+    unfinished = _trained_steps(run_dir / "train") < settings.steps
     wall = train(settings, command, shown, run_dir)
     return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall, trained_on(run_dir),
-                      timed_from_step(run_dir))
+                      timed_from_step(run_dir), unfinished)
 
 
 @dataclass
@@ -293,7 +296,8 @@ def settle_policy(settings: TrainSettings, trained: TrainedRun, data: Path, repo
     walls = (trained.train_wall_s, settled.train_wall_s)
     return TrainedRun(settled.checkpoint, f"{trained.command} && {settled.command}",
                       None if None in walls else round(sum(walls), 1),
-                      list(dict.fromkeys(trained.trained_on + settled.trained_on)), trained.timed_from_step)
+                      list(dict.fromkeys(trained.trained_on + settled.trained_on)), trained.timed_from_step,
+                      trained.trained_now or settled.trained_now)
 
 
 def machine_name() -> str:
@@ -321,9 +325,10 @@ def timed_from_step(run_dir: Path) -> int:
 
 def training_record(trained: TrainedRun) -> dict[str, Any]:
     """How a run was trained, for its record: read afresh from its timing file whenever the record is
-    used, so that a record scored before a field existed still reports it."""
+    used, so that a record scored before a field existed still reports it, and whether the invocation
+    that uses it trained the run or found it finished."""
     return {"train_wall_s": trained.train_wall_s, "train_timed_from_step": trained.timed_from_step,
-            "trained_on": trained.trained_on}
+            "trained_on": trained.trained_on, "trained_by_this_invocation": trained.trained_now}
 
 
 def evaluate_run(folder: Path, trained: TrainedRun, data: Path, repo_id: str, rollouts: int,
