@@ -195,7 +195,9 @@ def test_dial_clones_train_on_the_induction_recipe_and_finetune_on_the_pins(dial
     assert json.loads((folder / "restarts.json").read_text()) == ocn_choice
     # Asked again, the clone is the same choice, trained no further.
     logs = [(folder / f"restart{j}" / "train.log").read_text() for j in (0, 1)]
-    assert dial.clone(args, dial_dataset, dial.METHODS[0], 1) == chosen["ocn"]
+    run, choice = chosen["ocn"]
+    assert run.trained_now and dial.clone(args, dial_dataset, dial.METHODS[0], 1) == (
+        dataclasses.replace(run, trained_now=False), choice)
     assert [(folder / f"restart{j}" / "train.log").read_text() for j in (0, 1)] == logs
     for restarts, step, message in (("2", "0", r"chosen at step 0 \(--select-step\), which must lie in 1..2"),
                                     ("2", "3", r"chosen at step 3 \(--select-step\), which must lie in 1..2"),
