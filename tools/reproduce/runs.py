@@ -178,10 +178,9 @@ def train_policy(
     dataset's view that the policy trains on (`training_data`)."""
     command, shown = run_command(settings, data, repo_id, run_dir, seed, overrides, init)
     check_reusable(run_dir, shown)
-    unfinished = _trained_steps(run_dir / "train") < settings.steps
-    wall = train(settings, command, shown, run_dir)
+    wall, trained_now = train(settings, command, shown, run_dir)
     return TrainedRun(run_dir / "train" / "checkpoints" / "last" / "pretrained_model", shown, wall, trained_on(run_dir),
-                      timed_from_step(run_dir), unfinished)
+                      timed_from_step(run_dir), trained_now)
 
 
 @dataclass
@@ -370,15 +369,15 @@ def _trained_steps(train_dir: Path) -> int:
     return json.loads(path.read_text())["step"] if path.exists() else 0
 
 
-def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path) -> float | None:
+def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path) -> tuple[float | None, bool]:
     """Run lerobot-train until the run has all its steps: from scratch, or resumed from the last
     checkpoint of a stopped run (a run folder with no checkpoint yet starts over). Returns the wall
     seconds of every training invocation of this run added up (None if an earlier reproduction
-    trained it all)."""
+    trained it all) and whether this call trained any steps (False: the run was found finished)."""
     train_dir, times_path = run_dir / "train", run_dir / "train_wall_s.json"
     done = _trained_steps(train_dir)
     if done >= settings.steps:
-        return json.loads(times_path.read_text())["total"] if times_path.exists() else None
+        return (json.loads(times_path.read_text())["total"] if times_path.exists() else None), False
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "train_command.txt").write_text(shown + "\n")
     if done == 0:
@@ -401,7 +400,7 @@ def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path
     times["invocations"].append({"from_step": done, "wall_s": wall, "machine": machine_name()})
     times["total"] = round(times["total"] + wall, 1)
     times_path.write_text(json.dumps(times, indent=2) + "\n")
-    return times["total"]
+    return times["total"], True
 
 
 def check_reusable(run_dir: Path, command: str) -> None:
