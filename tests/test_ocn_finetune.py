@@ -244,6 +244,58 @@ def test_finetuning_is_seeded(ocn_checkpoint, tmp_path):
         assert torch.equal(a, b), name
 
 
+def test_an_interrupted_run_resumes_exactly_where_it_stopped(ocn_checkpoint, tmp_path, monkeypatch, capsys):
+    """A run stopped in its third iteration and resumed with --resume runs only the iterations left and ends
+    with the curve and weights of the same run left alone; other settings, or nothing to resume, are refused."""
+    from tools.ppo import PPOTrainer
+
+    def argv(out: Path, *changes: str) -> list[str]:
+        return ["--checkpoint", str(ocn_checkpoint), "--tasks", "ADC", "--frames", "400", "--envs", "4",
+                "--max-steps", "20", "--seed", "5", "--out", str(out), *changes]
+
+    def curve(out: Path) -> list[dict]:
+        return [{key: value for key, value in row.items() if key != "seconds"}
+                for row in csv.DictReader(open(out / "curve.csv"))]
+
+    assert main(argv(tmp_path / "straight")) == 0
+    iterations = len(curve(tmp_path / "straight"))
+    assert iterations >= 4
+
+    update, updates = PPOTrainer.update, []
+
+    def counted_update(self, batch):
+        updates.append(1)
+        if len(updates) == 3 and interrupting:
+            raise KeyboardInterrupt
+        return update(self, batch)
+
+    monkeypatch.setattr(PPOTrainer, "update", counted_update)
+    interrupting = True
+    with pytest.raises(KeyboardInterrupt):
+        main(argv(tmp_path / "stopped"))
+    assert not (tmp_path / "stopped" / "finetune.json").exists()
+    assert len(curve(tmp_path / "stopped")) == 2
+
+    capsys.readouterr()
+    assert_refused({
+        "seed: 5 there, 6 here": argv(tmp_path / "stopped", "--resume", "--seed", "6"),
+        "no run to go on with": argv(tmp_path / "empty", "--resume"),
+        "holds a finished run": argv(tmp_path / "straight", "--resume"),
+        "--resume goes on with an interrupted run": argv(tmp_path / "stopped"),
+    }, capsys)
+
+    interrupting, updates[:] = False, []
+    assert main(argv(tmp_path / "stopped", "--resume", "--threads", "1")) == 0
+    assert len(updates) == iterations - 2
+    assert curve(tmp_path / "stopped") == curve(tmp_path / "straight")
+    summary = json.loads((tmp_path / "stopped" / "finetune.json").read_text())
+    assert summary["resumed_at_frames"] == int(curve(tmp_path / "straight")[1]["frames"])
+    straight, _, _ = load_ocn(tmp_path / "straight" / "pretrained_model")
+    resumed, _, _ = load_ocn(tmp_path / "stopped" / "pretrained_model")
+    for (name, a), (_, b) in zip(straight.state_dict().items(), resumed.state_dict().items(), strict=True):
+        assert torch.equal(a, b), name
+
+
 # ---- baselines: MoE and HIL checkpoints, flat PPO--------------------------------------------------
 
 

@@ -72,6 +72,16 @@ def test_s1_clone_trained_on_or_under_other_settings_is_finetuned_again(tmp_path
         "training_state/training_step.json")
     assert json.loads(step.read_text())["step"] == 2
 
+    # A finetuning stopped before it wrote its summary (here after its last PPO iteration) goes on from
+    # its snapshot with ocn-finetune --resume, instead of starting again.
+    run = tmp_path / "work" / "finetune_s1" / "ocn_sparse_frames1500_envs8" / "seed1" / "run"
+    curve = (run / "curve.csv").read_text()
+    (run / "finetune.json").unlink()
+    resumed = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse")
+    assert resumed.returncode == 0 and "from where it stopped" in resumed.stdout, resumed.stderr[-2000:]
+    summary = json.loads((run / "finetune.json").read_text())
+    assert summary["resumed_at_frames"] == summary["frames"] and (run / "curve.csv").read_text() == curve
+
     # More clone steps extend the clone from its last checkpoint, and its finetuning is made again.
     longer = _reproduce(tmp_path, "--methods", "ocn", "--rewards", "sparse", "--steps", "4")
     assert longer.returncode == 0, longer.stderr[-2000:]

@@ -58,8 +58,9 @@ comparison (figure 6) has no flat baseline, so `--flat` with Dial PINs is refuse
 
 Writes into --out: curve.csv (one row per PPO iteration: env frames, mean return, success overall
 and per task as `success[ADC]` or `success[124]`, PPO statistics), curve.png, finetune.json
-(settings and summary) and pretrained_model/ (config, weights and the first checkpoint's
-pre/post-processors).
+(settings and summary), pretrained_model/ (config, weights and the first checkpoint's
+pre/post-processors) and training_state.pt, rewritten after every iteration (`tools.ppo.RunSnapshot`):
+`--resume` with the same command goes on from it after an interruption, as if the run had not stopped.
 """
 
 from __future__ import annotations
@@ -84,11 +85,17 @@ from policies.ompn import OMPNPolicy
 from policies.sequence import SequenceConfig
 from tools.episode_parsing import Processor, load_policy
 from tools.ompn_rl import finetunable_ompn, ompn_for_tasks
-from tools.ppo import Acting, PPOConfig, env_tasks, finetune
+from tools.ppo import Acting, PPOConfig, RunSnapshot, env_tasks, finetune
 from tools.worlds import World, craft, dial, policy_world
 
 # The new controller's softmax temperature unless --temperature says otherwise (module docstring).
 FRESH_CONTROLLER_TEMPERATURE = 1.0
+
+# What --resume goes on from, in --out.
+STATE_FILE = "training_state.pt"
+# Arguments that do not change what a run computes, so a resumed run may differ in them (--threads may
+# change the last bits of the floating-point sums, so a resume on other threads is not bit-identical).
+NOT_SETTINGS = ("out", "resume", "threads")
 
 # Config fields that must agree for options of different checkpoints to share one encoder, one
 # action head and one stacked cell.
@@ -121,6 +128,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=0,
                         help="seeds the new controller, the sampling and the envs (Craft maps, Dial start poses)")
     parser.add_argument("--out", type=Path, required=True, help="output folder (must be new or empty)")
+    parser.add_argument("--resume", action="store_true",
+                        help=f"go on with the interrupted run in --out from its {STATE_FILE}, under the same settings")
     parser.add_argument("--mode", choices=("paper", "full"), default="paper", help="Craft world mode (Dial has none)")
     parser.add_argument("--max-steps", type=int, default=None,
                         help="episode step limit (default: the env's; Craft 100 for tasks of 3+ subtasks, Dial 150 "
@@ -321,8 +330,24 @@ def _check_args(args: argparse.Namespace) -> None:
         raise ValueError("--frames, --envs, --threads and --hidden-size must be >= 1.")
     if args.max_steps is not None and args.max_steps < 1:
         raise ValueError("--max-steps must be >= 1.")
-    if args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
-        raise FileExistsError(f"--out {args.out} exists and is not an empty folder; outputs are never overwritten.")
+    if args.resume:
+        if (args.out / "finetune.json").exists():
+            raise FileExistsError(f"--out {args.out} holds a finished run (finetune.json): nothing to resume.")
+        if not (args.out / STATE_FILE).exists():
+            raise FileNotFoundError(f"--resume: {args.out / STATE_FILE} does not exist: no run to go on with.")
+    elif args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
+        raise FileExistsError(f"--out {args.out} exists and is not an empty folder; outputs are never overwritten "
+                              "(--resume goes on with an interrupted run).")
+
+
+def run_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """What identifies a run: every argument but `NOT_SETTINGS`, paths as strings."""
+    def plain(value: Any) -> Any:
+        if isinstance(value, list):
+            return [plain(v) for v in value]
+        return str(value) if isinstance(value, Path) else value
+
+    return {key: plain(value) for key, value in vars(args).items() if key not in NOT_SETTINGS}
 
 
 @dataclasses.dataclass
@@ -414,6 +439,8 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     from tqdm import tqdm
 
     _check_args(args)
+    snapshot = RunSnapshot(args.out / STATE_FILE, run_settings(args))
+    resume = snapshot.load() if args.resume else None
     torch.set_num_threads(args.threads)
     start = _start(args)
     policy, tasks, labels = start.policy, start.tasks, start.labels
@@ -424,14 +451,15 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
     envs = acting.world.new_batch(args.envs, args.reward, args.max_steps)
 
     args.out.mkdir(parents=True, exist_ok=True)
-    started = time.perf_counter()
+    done = resume["rows"] if resume else []
+    # A resumed run's seconds go on from the interrupted run's last row.
+    started = time.perf_counter() - (done[-1]["seconds"] if done else 0.0)
     with open(args.out / "curve.csv", "w", newline="") as handle, \
             tqdm(total=args.frames, desc="ocn-finetune", unit="frame") as bar:
         writer: csv.DictWriter | None = None
 
-        def record(row: dict[str, Any]) -> None:
+        def write(row: dict[str, Any]) -> None:
             nonlocal writer
-            row["seconds"] = round(time.perf_counter() - started, 2)
             if writer is None:
                 writer = csv.DictWriter(handle, fieldnames=list(row))
                 writer.writeheader()
@@ -440,7 +468,13 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
             bar.update(min(row["frames"], args.frames) - bar.n)
             bar.set_postfix(success=f"{row['success']:.2f}", ret=f"{row['mean_return']:.2f}")
 
-        rows = finetune(policy, envs, acting, tasks, args.frames, config, args.seed, record, labels)
+        def record(row: dict[str, Any]) -> None:
+            row["seconds"] = round(time.perf_counter() - started, 2)
+            write(row)
+
+        for row in done:
+            write(row)
+        rows = finetune(policy, envs, acting, tasks, args.frames, config, args.seed, record, labels, snapshot, resume)
     wall = time.perf_counter() - started
     checkpoint = args.out / "pretrained_model"
     save_checkpoint(policy, start.preprocessor, start.postprocessor, checkpoint)
@@ -461,6 +495,7 @@ def finetune_checkpoints(args: argparse.Namespace) -> dict[str, Any]:
         "frames": rows[-1]["frames"],
         "iterations": len(rows),
         "wall_s": round(wall, 2),
+        "resumed_at_frames": done[-1]["frames"] if done else None,
         "frames_per_s": round(rows[-1]["frames"] / wall, 1),
         "final_success": rows[-1]["success"],
         "final_mean_return": rows[-1]["mean_return"],

@@ -39,12 +39,19 @@ the replay of whole episodes' decisions, and what it trains. An OCN's is `Option
 the above. An OMPN's is `tools.ompn_rl.MemoryActor`, OMPN's RL form (paper appendix A.3): OMPN
 cannot be split into options, so every row decides at every step, its choice is the primitive
 action, and the whole network is trained (one transition per env step: ordinary GAE).
+
+A run can save a `RunSnapshot` after every iteration: the policy's and the critic's weights, Adam's
+moments, the torch RNG, the env-seed generator and the rows so far. Every iteration starts its envs
+afresh from drawn seeds, so nothing else carries over, and a run resumed from its snapshot goes on
+exactly as if it had not stopped (bit-identical on the same machine and thread count; tested).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -406,6 +413,36 @@ def iteration_row(
     return row
 
 
+@dataclass
+class RunSnapshot:
+    """The file where `finetune` keeps, after every iteration, all that its run needs to go on after an
+    interruption, and the settings that identify the run (what made it: checkpoints, tasks, budget,
+    PPO settings...). A snapshot saved under other settings is refused, so a run never resumes as
+    another one."""
+
+    path: Path
+    settings: dict[str, Any]
+
+    def load(self) -> dict[str, Any] | None:
+        """The saved state (None if there is no file yet); ValueError if its run had other settings."""
+        if not self.path.exists():
+            return None
+        state = torch.load(self.path, weights_only=False)
+        saved = state["settings"]
+        differ = [f"{key}: {saved.get(key)!r} there, {self.settings.get(key)!r} here"
+                  for key in sorted(set(saved) | set(self.settings)) if saved.get(key) != self.settings.get(key)]
+        if differ:
+            raise ValueError(f"{self.path} was saved by a run with other settings ({'; '.join(differ)}).")
+        return state
+
+    def save(self, state: dict[str, Any]) -> None:
+        """Write `state` (with the settings) beside the file and move it in place: an interruption during
+        the write leaves the previous snapshot whole."""
+        partial = self.path.with_name(self.path.name + ".partial")
+        torch.save({**state, "settings": self.settings}, partial)
+        os.replace(partial, self.path)
+
+
 def finetune(
     policy: OCNPolicy | OMPNPolicy,
     envs: EpisodeBatch,
@@ -416,6 +453,8 @@ def finetune(
     seed: int,
     on_iteration: Callable[[dict[str, Any]], None] | None = None,
     labels: Sequence[str] | None = None,
+    snapshot: RunSnapshot | None = None,
+    resume: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """PPO until `total_frames` env frames are spent; one iteration = one episode in every env.
 
@@ -424,13 +463,22 @@ def finetune(
     with `seed`). The learning rate
     decays linearly with the frames spent. Returns one row per iteration (also passed to
     `on_iteration` as it happens): frames so far, lr, the batch's returns and successes (per task
-    under `labels`, default the task strings), PPO stats.
+    under `labels`, default the task strings), PPO stats. With `snapshot`, the run's state is saved
+    there after every iteration; `resume` (a state `RunSnapshot.load` read) goes on from it, its rows
+    returned first but not passed to `on_iteration` again.
     """
     torch.manual_seed(seed)
     env_seeds = np.random.default_rng(seed)
     trainer = PPOTrainer(policy, config)
     env_task = env_tasks(tasks, envs.num_envs)
     frames, rows = 0, []
+    if resume is not None:
+        policy.load_state_dict(resume["policy"])
+        trainer.critic.load_state_dict(resume["critic"])
+        trainer.optimizer.load_state_dict(resume["optimizer"])
+        torch.set_rng_state(resume["torch_rng"])
+        env_seeds.bit_generator.state = resume["env_seeds"]
+        frames, rows = resume["frames"], list(resume["rows"])
     while frames < total_frames:
         lr = trainer.set_lr_fraction(1.0 - frames / total_frames)
         batch = collect(policy, envs, acting, env_task, env_seeds.integers(0, 2**31 - 1, envs.num_envs), config.gamma)
@@ -441,4 +489,8 @@ def finetune(
         rows.append(row)
         if on_iteration is not None:
             on_iteration(row)
+        if snapshot is not None:
+            snapshot.save({"policy": policy.state_dict(), "critic": trainer.critic.state_dict(),
+                           "optimizer": trainer.optimizer.state_dict(), "torch_rng": torch.get_rng_state(),
+                           "env_seeds": env_seeds.bit_generator.state, "frames": frames, "rows": rows})
     return rows

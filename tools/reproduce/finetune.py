@@ -30,7 +30,7 @@ import numpy as np
 
 from tools import console_script
 from tools.bench import RESULTS
-from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE
+from tools.ocn_finetune import FRESH_CONTROLLER_TEMPERATURE, STATE_FILE
 from tools.ppo import PPOConfig
 from tools.reproduce import imitation
 from tools.reproduce.report import checks_table, origin_words, over_seeds, provenance, write_result_files
@@ -239,7 +239,8 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
                  clones: list[TrainedRun]) -> dict[str, Any]:
     """Finetune (unless done) over the options of `clones` (none for flat PPO) and read back one run's curve.
     A finished run is made again when a clone it used was trained on since (`clones.json` keeps the
-    clones' training commands; runs from before it existed are reused as they are)."""
+    clones' training commands; runs from before it existed are reused as they are). An interrupted run
+    of the same command over the same clones goes on from its last PPO iteration (`ocn-finetune --resume`)."""
     folder = f"{method.key}_{reward}{clone_suffix(args, method)}{ppo_suffix(args)}"
     out = args.workdir / f"finetune_{setting.name}" / folder / f"seed{seed}"
     command = finetune_command(args, setting, method, reward, seed, clones, out / "run")
@@ -249,20 +250,24 @@ def finetune_run(args: argparse.Namespace, setting: Setting, method: Method, rew
         raise SystemExit(f"{out} holds a run made by another command:\n  {command_path.read_text().strip()}\n"
                          f"while this reproduction would run:\n  {shown}\nMove it away or pass another --workdir.")
     clones_path = out / "clones.json"
-    if summary_path.exists() and clones_path.exists() and not all(
+    same_clones = not clones_path.exists() or all(
         same_training(before, run.command)
         for before, run in zip(json.loads(clones_path.read_text()), clones, strict=True)
-    ):
+    )
+    if summary_path.exists() and not same_clones:
         print(f"finetuning {out} again: its clones were trained on since", flush=True)
         summary_path.unlink()
     if not summary_path.exists():
-        shutil.rmtree(out / "run", ignore_errors=True)
+        resuming = same_clones and command_path.exists() and (out / "run" / STATE_FILE).exists()
+        if not resuming:
+            shutil.rmtree(out / "run", ignore_errors=True)
         out.mkdir(parents=True, exist_ok=True)
         command_path.write_text(shown + "\n")
         clones_path.write_text(json.dumps([run.command for run in clones]) + "\n")
-        print(f"finetuning {out}", flush=True)
-        with open(out / "finetune.log", "w") as log:
-            subprocess.run(command, check=True, stdout=log, stderr=subprocess.STDOUT)
+        print(f"finetuning {out}{' from where it stopped' if resuming else ''}", flush=True)
+        with open(out / "finetune.log", "a" if resuming else "w") as log:
+            subprocess.run([*command, "--resume"] if resuming else command, check=True, stdout=log,
+                           stderr=subprocess.STDOUT)
     curve = read_curve(out / "run" / "curve.csv", task_labels(setting))
     return {
         "method": method.name, "reward": reward, "seed": seed, "command": shown,
