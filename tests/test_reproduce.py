@@ -161,6 +161,11 @@ def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_an
         ", explained-termination cost 0.3 (`--policy.explained_termination_cost`), "
         "option-switch cost 0.5 (`--policy.switch_cost`)")
     assert imitation.cost_words({}) == ""
+    expected = overrides("--expected-nll-weight", "0.1")
+    assert expected == {"usage_balance": 1.0, "expected_nll_weight": 0.1}
+    assert imitation.run_dir(Path("w"), main, 1, expected) == Path(
+        "w/imitation_s1/3options_T10_usage_balance1.0_expected_nll_weight0.1/seed1")
+    assert imitation.cost_words(expected) == ", expected NLL weighted 0.1 (`--policy.expected_nll_weight`)"
 
 
 def test_imitation_runs_can_be_limited_to_chosen_variants():

@@ -40,7 +40,7 @@ STUDY_DEFAULTS = {"lr_schedule": SequenceConfig.lr_schedule, "obs_encoder": Sequ
                   "optimizer_weight_decay": SequenceConfig.optimizer_weight_decay,
                   "window_start": SequenceConfig.window_start,
                   "explained_termination_cost": OCNConfig.explained_termination_cost,
-                  "switch_cost": OCNConfig.switch_cost}
+                  "switch_cost": OCNConfig.switch_cost, "expected_nll_weight": OCNConfig.expected_nll_weight}
 # The option-usage balance this study trains with unless told otherwise: without it, whether the
 # options split the subtasks within a run's steps is a matter of the run (README, results).
 STUDY_USAGE_BALANCE = 1.0
@@ -50,7 +50,8 @@ STUDY_KEYS = ("steps", "batch_size", "window_size", "controller_lr_scale", "epis
               "lr_schedule", "obs_encoder", "usage_balance", "optimizer_lr", "rollouts", "settle_steps",
               "settle_termination_cost", "window_start", "optimizer_weight_decay", "dart_noise",
               "usage_balance_options", "explained_termination_cost", "switch_cost", "usage_balance_source",
-              "settle_usage_balance_options", "settle_usage_balance_exact", "settle_switch_cost")
+              "settle_usage_balance_options", "settle_usage_balance_exact", "settle_switch_cost",
+              "expected_nll_weight")
 # What a results file written before the study settled its runs was made with (None: the settling run
 # keeps the first run's setting).
 UNSETTLED = {"settle_steps": 0, "settle_termination_cost": 0.0, "settle_usage_balance_options": None,
@@ -414,10 +415,11 @@ def balance_options_words(settings: dict[str, Any]) -> str:
 
 
 def cost_words(settings: dict[str, Any]) -> str:
-    """The explained-termination and option-switch costs the runs trained under from their first step,
-    where there were any."""
+    """The explained-termination and option-switch costs and the expected NLL's weight the runs trained
+    under from their first step, where there were any."""
     words = ""
-    costs = (("explained_termination_cost", "explained-termination cost"), ("switch_cost", "option-switch cost"))
+    costs = (("explained_termination_cost", "explained-termination cost"), ("switch_cost", "option-switch cost"),
+             ("expected_nll_weight", "expected NLL weighted"))
     for key, name in costs:
         cost = settings.get(key, STUDY_DEFAULTS[key])
         words += f", {name} {cost:g} (`--policy.{key}`)" if cost else ""
@@ -474,6 +476,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--explained-termination-cost", type=float, default=STUDY_DEFAULTS["explained_termination_cost"],
                     help="weight of the cost on terminations the ending option would have explained "
                          "(OCNConfig.explained_termination_cost; 0 is the paper's loss), from a run's first step")
+    s1.add_argument("--expected-nll-weight", type=float, default=STUDY_DEFAULTS["expected_nll_weight"],
+                    help="weight of the expected NLL added to the loss (OCNConfig.expected_nll_weight; 0 is the "
+                         "paper's loss), from a run's first step")
     add_switch_cost_argument(s1)
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
