@@ -319,6 +319,16 @@ def test_packed_clones_load_the_packed_view_in_folders_of_their_own_and_share_im
     s1_switching = parsed("s1", "--window-start", "packed", "--switch-cost", "0.3")
     assert finetune.clone_dir(s1_switching, SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
     assert shared.parent.name == "3options_T10_usage_balance1.0_packed_switch_cost0.3"
+    # So does --expected-nll-weight, and S1's OCN clone is imitation-s1's run under the same weight.
+    weighted = parsed("s1", "--window-start", "packed", "--expected-nll-weight", "0.1")
+    assert finetune.clone_settings(weighted, SETTINGS["s1"], methods["ocn"])[1]["expected_nll_weight"] == 0.1
+    assert "expected_nll_weight" not in finetune.clone_settings(weighted, SETTINGS["s1"], methods["moe"])[1]
+    study = parsed("imitation-s1", "--window-start", "packed", "--expected-nll-weight", "0.1")
+    shared = imitation.run_dir(tmp_path, imitation.VARIANTS[0], 1, imitation.study_overrides(study))
+    assert finetune.clone_dir(weighted, SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
+    assert shared.parent.name == "3options_T10_usage_balance1.0_packed_expected_nll_weight0.1"
+    assert finetune.clone_dir(weighted, SETTINGS["s1"], methods["moe"], "craft_s1", 1).parent.name == (
+        "moe_usage_balance1.0_packed")
     # Dial's clones take the packed view too (its normaliser standardises the packed columns).
     assert parsed("dial").window_start == "episode"
     assert dial.clone_dir(parsed("dial", "--window-start", "packed"), methods["ocn"], 1) == (

@@ -26,7 +26,7 @@ from tools.reproduce.report import provenance
 RECIPE = ("frames", "envs", "steps", "batch_size", "window_size", "controller_lr_scale", "episodes_per_task",
           "data_seed", "dart_noise", "window_start", "usage_balance", "settle_steps", "settle_termination_cost",
           "entropy", "gamma", "n_options", "switch_cost", "settle_usage_balance_options", "settle_usage_balance_exact",
-          "settle_switch_cost")
+          "settle_switch_cost", "expected_nll_weight")
 
 
 def kind_of(result: dict[str, Any]) -> str | None:

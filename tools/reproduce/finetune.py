@@ -82,6 +82,7 @@ BASELINES = tuple(method.name for method in METHODS if method.key != "ocn")
 # The value of each study setting that results files written before it existed leave out.
 SETTING_DEFAULTS = {"window_start": imitation.STUDY_DEFAULTS["window_start"], "usage_balance": 0.0,
                     "switch_cost": imitation.STUDY_DEFAULTS["switch_cost"],
+                    "expected_nll_weight": imitation.STUDY_DEFAULTS["expected_nll_weight"],
                     **imitation.UNSETTLED, **imitation.RECORDING_DEFAULTS, "entropy": PPOConfig.entropy_coef,
                     "gamma": PPOConfig.gamma}
 
@@ -114,11 +115,16 @@ def balance_override(args: argparse.Namespace) -> dict[str, float]:
     return {"usage_balance": args.usage_balance} if args.usage_balance else {}
 
 
-def switch_override(args: argparse.Namespace, method: Method) -> dict[str, float]:
-    """`--policy.switch_cost` of OCN's clones (`--switch-cost`), spelled out only when set: MoE and HIL
-    choose at every step or after a fixed length, so there are no terminations whose choice it could steer."""
-    cost = getattr(args, "switch_cost", imitation.STUDY_DEFAULTS["switch_cost"])
-    return {"switch_cost": cost} if cost and method.key == "ocn" else {}
+def cost_overrides(args: argparse.Namespace, method: Method) -> dict[str, float]:
+    """`--policy.switch_cost` and `--policy.expected_nll_weight` of OCN's clones (`--switch-cost`,
+    `--expected-nll-weight`), each spelled out only when set. Both are part of OCN's imitation recipe
+    (imitation-s1 chose them for OCN): MoE and HIL choose at every step or after a fixed length, so
+    there are no terminations whose choice the switch cost could steer, and their clones keep the
+    recipe of every study before these options."""
+    if method.key != "ocn":
+        return {}
+    costs = {key: getattr(args, key, imitation.STUDY_DEFAULTS[key]) for key in ("switch_cost", "expected_nll_weight")}
+    return {key: cost for key, cost in costs.items() if cost}
 
 
 def loading_override(args: argparse.Namespace) -> dict[str, str]:
@@ -140,9 +146,9 @@ def options_override(args: argparse.Namespace, method: Method) -> dict[str, int]
 
 def clone_overrides(args: argparse.Namespace, method: Method) -> dict[str, Any]:
     """The study-wide `--policy.*` settings of the method's clones, each spelled out only when set: the
-    usage balance and pool size of the OCN family, the packed view of any clone, the switch cost of OCN's."""
+    usage balance and pool size of the OCN family, the packed view of any clone, OCN's costs (`cost_overrides`)."""
     balance = balance_override(args) if method.policy_type == "ocn" else {}
-    return {**balance, **loading_override(args), **switch_override(args, method), **options_override(args, method)}
+    return {**balance, **loading_override(args), **cost_overrides(args, method), **options_override(args, method)}
 
 
 def clone_study_suffix(args: argparse.Namespace, method: Method) -> str:
@@ -557,6 +563,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         imitation.add_window_start_argument(parser)
         imitation.add_dart_noise_argument(parser)
         imitation.add_switch_cost_argument(parser)
+        imitation.add_expected_nll_argument(parser)
         imitation.add_settling_arguments(parser, 0, "OCN's clones (as imitation-s1's, which settles by default)")
         parser.add_argument("--results", type=Path, default=RESULTS)
         parser.set_defaults(func=reproduce)

@@ -476,10 +476,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s1.add_argument("--explained-termination-cost", type=float, default=STUDY_DEFAULTS["explained_termination_cost"],
                     help="weight of the cost on terminations the ending option would have explained "
                          "(OCNConfig.explained_termination_cost; 0 is the paper's loss), from a run's first step")
-    s1.add_argument("--expected-nll-weight", type=float, default=STUDY_DEFAULTS["expected_nll_weight"],
-                    help="weight of the expected NLL added to the loss (OCNConfig.expected_nll_weight; 0 is the "
-                         "paper's loss), from a run's first step")
     add_switch_cost_argument(s1)
+    add_expected_nll_argument(s1)
     add_settling_arguments(s1, STUDY_SETTLING.steps, "each run")
     s1.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per option-table cell")
     s1.add_argument("--results", type=Path, default=RESULTS)
@@ -507,6 +505,13 @@ def add_switch_cost_argument(parser: argparse.ArgumentParser) -> None:
                         help="weight of the cost on the probability mass that changes option at a step, in OCN's "
                              "behaviour cloning (OCNConfig.switch_cost; 0 is the paper's loss), from a run's first "
                              "step")
+
+
+def add_expected_nll_argument(parser: argparse.ArgumentParser) -> None:
+    """`--expected-nll-weight` of the studies that clone OCN."""
+    parser.add_argument("--expected-nll-weight", type=float, default=STUDY_DEFAULTS["expected_nll_weight"],
+                        help="weight of the expected NLL added to OCN's behaviour-cloning loss "
+                             "(OCNConfig.expected_nll_weight; 0 is the paper's loss), from a run's first step")
 
 
 def add_dart_noise_argument(parser: argparse.ArgumentParser) -> None:
