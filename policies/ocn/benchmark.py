@@ -7,8 +7,8 @@ evaluated one module at a time in a Python loop, i.e. what a list of per-option 
 import copy
 import statistics
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager
 from typing import Any
 
 import torch
@@ -155,17 +155,44 @@ def stepping_every_row(policy: OCNPolicy) -> Iterator[OCNPolicy]:
         del policy.core.unroll_frames
 
 
-def compare_running_vs_every_row(policy: OCNPolicy, batch: dict, rounds: int = 3) -> dict[str, float]:
-    """Training throughput (frames of the padded batch per second) stepping only the rows still in
-    their episode against stepping every row to the window's end, same weights and batch, measured in
-    alternation for `rounds` rounds."""
-    best = {"running": 0.0, "every": 0.0}
+@contextmanager
+def restarting_in_each_step(policy: OCNPolicy) -> Iterator[OCNPolicy]:
+    """Within, each step of the policy's training forward computes the options' restarted branch itself,
+    for the same loss (tested): the update as it was before `OCNCore.restarts_ahead` computed that branch
+    for a whole window in one call, the baseline of that speed-up."""
+    policy.core.restarts_ahead = lambda x_options, rows: [None] * len(rows)
+    try:
+        yield policy
+    finally:
+        del policy.core.restarts_ahead
+
+
+def best_in_alternation(
+    policy: OCNPolicy, batch: dict, baseline: Callable[[OCNPolicy], AbstractContextManager], rounds: int = 3
+) -> tuple[float, float]:
+    """The best training throughput (frames of the padded batch per second) of the policy as it is and
+    inside `baseline(policy)`, same weights and batch, measured in alternation for `rounds` rounds so
+    that both see the same load."""
+    best = [0.0, 0.0]
     for _ in range(rounds):
-        best["running"] = max(best["running"], train_frames_per_second(policy, batch, repeats=1))
-        with stepping_every_row(policy):
-            best["every"] = max(best["every"], train_frames_per_second(policy, batch, repeats=1))
-    return {"running_rows_per_s": best["running"], "every_row_per_s": best["every"],
-            "speedup": best["running"] / best["every"]}
+        best[0] = max(best[0], train_frames_per_second(policy, batch, repeats=1))
+        with baseline(policy):
+            best[1] = max(best[1], train_frames_per_second(policy, batch, repeats=1))
+    return best[0], best[1]
+
+
+def compare_running_vs_every_row(policy: OCNPolicy, batch: dict, rounds: int = 3) -> dict[str, float]:
+    """Training throughput stepping only the rows still in their episode against stepping every row to
+    the window's end (`best_in_alternation`)."""
+    running, every = best_in_alternation(policy, batch, stepping_every_row, rounds)
+    return {"running_rows_per_s": running, "every_row_per_s": every, "speedup": running / every}
+
+
+def compare_restarts_ahead_vs_each_step(policy: OCNPolicy, batch: dict, rounds: int = 3) -> dict[str, float]:
+    """Training throughput with the options' restarted branch computed for the whole window ahead against
+    computed in each step (`best_in_alternation`)."""
+    ahead, each = best_in_alternation(policy, batch, restarting_in_each_step, rounds)
+    return {"restarts_ahead_per_s": ahead, "restarts_each_step_per_s": each, "speedup": ahead / each}
 
 
 def compare_stacked_vs_loop(

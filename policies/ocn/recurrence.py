@@ -114,6 +114,12 @@ class Projected(NamedTuple):
     options: Tensor
 
 
+def spread_frames(rows: Projected, real: Tensor) -> Projected:
+    """First-layer terms of the frames where `real` [T, B] holds ([., R, d_mlp] each) as [T, ., B, d_mlp],
+    zeros elsewhere."""
+    return Projected(*(scatter_frames(part, real) for part in rows))
+
+
 def _mix(end: Tensor, done: Tensor, not_done: Tensor) -> Tensor:
     """Eq. 17: e_t * done + (1 - e_t) * not_done, `end` already shaped to broadcast against them."""
     return torch.lerp(not_done, done, end)
@@ -267,12 +273,29 @@ class OCNCore(nn.Module):
         """Observation parts for x [..., B, obs_dim], computed once per window outside the time loop."""
         return Projected(self.controller.project(x), self.options.project(x))
 
-    def step(self, state: OCNState, x: Projected, start: Tensor) -> tuple[OCNState, StepOutput]:
+    def restarts(self, x_options: Tensor) -> CellOutput:
+        """The options' "done" branch, a step from their learned initial states h^o_0, for projected
+        observations x_options [N, M, d_mlp] of any M frames. It reads no recurrent state, so the
+        unrolls compute it for every frame of a window in one call before the time loop, and each step
+        only does the work that depends on the step before."""
+        return self.options.step(x_options, self.option_init.unsqueeze(1))
+
+    def restarts_ahead(self, x_options: Tensor, rows: list[int]) -> list[CellOutput]:
+        """`restarts` of consecutive steps' frames x_options [N, sum(rows), d_mlp] in one call, split into
+        one output per step of rows[t] frames."""
+        out = self.restarts(x_options)
+        fields = [field.split(rows, dim=1) if field is not None else [None] * len(rows) for field in out]
+        return [CellOutput(*step) for step in zip(*fields, strict=True)]
+
+    def step(
+        self, state: OCNState, x: Projected, start: Tensor, restarted: CellOutput | None = None
+    ) -> tuple[OCNState, StepOutput]:
         """One step from projected observations x ([1, B, .], [N, B, .]); `start` [B] marks t = 1, where
-        e_t = 1 (as wherever `schedule` forces it)."""
+        e_t = 1 (as wherever `schedule` forces it). `restarted`: this step's `restarts`, where the caller
+        computed them ahead (None: computed here)."""
         forced, steps = self.schedule(start, state.steps)
         forced = self._forced_restarts(forced)
-        restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
+        restarted = self.restarts(x.options) if restarted is None else restarted
         continued = self._continued(x.options, state.option_h, restarted)
         ctrl = self.controller.step(x.controller, state.controller_h.unsqueeze(0))
         new_p_c = torch.softmax(ctrl.logits[0] / self.temperature, dim=-1)
@@ -322,7 +345,7 @@ class OCNCore(nn.Module):
         """`project` of the real frames only (`real` [T, B]) of time-major x [T, B, obs_dim], zeros
         elsewhere: training windows are mostly padding after their episode's end, whose outputs no
         loss reads, and this matmul over every frame is the largest single cost of a training step."""
-        return Projected(*(scatter_frames(part, real) for part in self.project(x[real])))
+        return spread_frames(self.project(x[real]), real)
 
     def unroll(self, x: Tensor, state: OCNState, start: Tensor) -> tuple[OCNState, StepOutput]:
         """Run over time-major x [T, B, obs_dim] with `start` [T, B]; outputs are stacked over T."""
@@ -331,10 +354,14 @@ class OCNCore(nn.Module):
     def unroll_projected(self, projected: Projected, state: OCNState, start: Tensor) -> tuple[OCNState, StepOutput]:
         """`unroll` from the first layer's observation terms [T, ., B, d_mlp], every row at every step."""
         # unbind, not indexing: indexing's backward would zero-fill the whole window at every step.
-        steps = zip(projected.controller.unbind(0), projected.options.unbind(0), start.unbind(0), strict=True)
+        n_steps, n_options, batch, width = projected.options.shape
+        frames = projected.options.transpose(0, 1).reshape(n_options, n_steps * batch, width)
+        restarted = self.restarts_ahead(frames, [batch] * n_steps)
+        steps = zip(projected.controller.unbind(0), projected.options.unbind(0), start.unbind(0), restarted,
+                    strict=True)
         outputs = []
-        for controller_x, options_x, step_start in steps:
-            state, out = self.step(state, Projected(controller_x, options_x), step_start)
+        for controller_x, options_x, step_start, step_restarted in steps:
+            state, out = self.step(state, Projected(controller_x, options_x), step_start, step_restarted)
             outputs.append(out)
         return state, StepOutput(*(torch.stack(field) for field in zip(*outputs, strict=True)))
 
@@ -350,13 +377,18 @@ class OCNCore(nn.Module):
         steps = torch.arange(real.shape[0], device=real.device)
         if (lengths[1:] > lengths[:-1]).any() or not torch.equal(real, steps[:, None] < lengths):
             raise ValueError("unroll_frames needs each row's real frames first and the rows longest first.")
-        projected = self.project_frames(x, real)
+        real_x = self.project(x[real])
+        projected = spread_frames(real_x, real)
         running = real.sum(1).tolist()
-        frames = zip(projected.controller.unbind(0), projected.options.unbind(0), start.unbind(0), running, strict=True)
+        # The real frames, time-major, are each step's running rows in turn.
+        restarted = self.restarts_ahead(real_x.options, running)
+        frames = zip(projected.controller.unbind(0), projected.options.unbind(0), start.unbind(0), running, restarted,
+                     strict=True)
         outputs = []
-        for controller_x, options_x, step_start, rows in frames:
+        for controller_x, options_x, step_start, rows, step_restarted in frames:
             state = state_rows(state, slice(0, rows))
-            state, out = self.step(state, Projected(controller_x[:, :rows], options_x[:, :rows]), step_start[:rows])
+            x_rows = Projected(controller_x[:, :rows], options_x[:, :rows])
+            state, out = self.step(state, x_rows, step_start[:rows], step_restarted)
             outputs.append(padded_rows(out, real.shape[1]))
         return StepOutput(*(torch.stack(field) for field in zip(*outputs, strict=True)))
 
