@@ -229,7 +229,7 @@ class OCNCore(nn.Module):
         """
         rows = torch.arange(start.shape[0], device=start.device)
         forced, steps = self.schedule(start, state.steps)
-        restarted = self.options.step(x.options, self.option_init.unsqueeze(1))
+        restarted = self.restarts(x.options)
         # One-step options (MoE, and the flat and compILE pools built on it) never continue: every
         # row decides at every step, so the continuing branch would be computed only to be discarded.
         continued = self._continued(x.options, state.option_h, restarted, self.skill_length == 1)
@@ -283,8 +283,7 @@ class OCNCore(nn.Module):
     def restarts_ahead(self, x_options: Tensor, rows: list[int]) -> list[CellOutput]:
         """`restarts` of consecutive steps' frames x_options [N, sum(rows), d_mlp] in one call, split into
         one output per step of rows[t] frames."""
-        out = self.restarts(x_options)
-        fields = [field.split(rows, dim=1) if field is not None else [None] * len(rows) for field in out]
+        fields = (field.split(rows, dim=1) for field in self.restarts(x_options))
         return [CellOutput(*step) for step in zip(*fields, strict=True)]
 
     def step(
@@ -332,7 +331,7 @@ class OCNCore(nn.Module):
         for x_controller, x_options, current, decide in steps:
             logits, stepped_h = self.decide(x_controller, controller_h)
             controller_h = torch.where(decide[:, None], stepped_h, controller_h)
-            restarted = self.options.step(x_options, self.option_init.unsqueeze(1))
+            restarted = self.restarts(x_options)
             continued = self._continued(x_options, option_h, restarted, one_step)
             gate = decide[None, :, None]
             params = torch.where(gate, restarted.logits, continued.logits)[current, rows]
