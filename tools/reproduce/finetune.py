@@ -361,7 +361,23 @@ def must_show(setting: Setting, summary: dict[str, dict[str, Any]]) -> list[dict
     if ours is not None and baselines and setting.name == "s1":
         checks.append({"check": "dense: OCN's return at least twice the best baseline's",
                        "value": ours / max(max(baselines), 1e-9), "holds": ours >= 2 * max(baselines)})
+        checks.extend(dense_reach(summary, labels))
     return checks
+
+
+def dense_reach(summary: dict[str, dict[str, Any]], labels: list[str]) -> list[dict[str, Any]]:
+    """Whether twice the best baseline's dense return is within reach at any budget: no return exceeds
+    the tasks' subtask count (+1 per subtask), and at every budget the best baseline returns at least
+    the lowest point of any one baseline's mean curve, so no budget's ratio exceeds their quotient.
+    Empty where the summary holds no curves."""
+    floors = [min(row["curves"]["mean_return"]["mean"]) for method in BASELINES
+              if (row := summary.get(f"{method} | dense")) is not None and "curves" in row]
+    if not floors:
+        return []
+    most = max(len(label) for label in labels)
+    return [{"check": f"dense: twice the best baseline's return within reach at some budget (the tasks' highest "
+                      f"return, {most}, over the highest low point of a baseline's mean curve)",
+             "value": most / max(floors), "holds": most >= 2 * max(floors)}]
 
 
 def plot(summary: dict[str, dict[str, Any]], methods: tuple[Method, ...], labels: list[str], band: str,
