@@ -105,10 +105,22 @@ def test_a_moved_dataset_is_still_reused_but_one_of_unknown_origin_is_not(tmp_pa
 def test_imitation_runs_under_non_default_study_settings_get_their_own_folder_and_policy_settings():
     from tools.reproduce import imitation
 
-    def overrides(*argv):
+    def parsed(*argv):
         parser = imitation.argparse.ArgumentParser()
         imitation.add_parser(parser.add_subparsers())
-        return imitation.study_overrides(parser.parse_args(["imitation-s1", *argv]))
+        return parser.parse_args(["imitation-s1", *argv])
+
+    # The study's defaults are its S1 recipe; every run under them lives in the recipe's folder.
+    recipe = parsed()
+    assert (recipe.window_size, recipe.dart_noise) == (32, 0.1)
+    assert imitation.study_overrides(recipe) == {"usage_balance": 1.0, "window_start": "packed",
+                                                 "expected_nll_weight": 0.1}
+    assert imitation.run_dir(Path("w"), imitation.VARIANTS[0], 1, imitation.study_overrides(recipe)) == Path(
+        "w/imitation_s1/3options_T10_usage_balance1.0_packed_expected_nll_weight0.1/seed1")
+
+    def overrides(*argv):
+        """The settings that name a run's folder, counted from the study's defaults before its recipe."""
+        return imitation.study_overrides(parsed("--window-start", "episode", "--expected-nll-weight", "0", *argv))
 
     paper = ("--usage-balance", "0")
     assert overrides(*paper) == overrides(*paper, "--lr-schedule", "constant", "--obs-encoder", "craft") == {}

@@ -310,8 +310,9 @@ def test_packed_clones_load_the_packed_view_in_folders_of_their_own_and_share_im
             == "moe_usage_balance1.0")
     assert finetune.clone_study_suffix(packed, methods["flat"]) == ""
 
-    # S1's OCN clone is the run that imitation-s1 trains under the same balance and loading.
-    study = parsed("imitation-s1", "--window-start", "packed")
+    # S1's OCN clone is the run that imitation-s1 trains under the same balance, loading and loss (the
+    # study's recipe adds the expected NLL, which s1 does not by default).
+    study = parsed("imitation-s1", "--window-start", "packed", "--expected-nll-weight", "0")
     shared = imitation.run_dir(tmp_path, imitation.VARIANTS[0], 1, imitation.study_overrides(study))
     assert finetune.clone_dir(parsed("s1", "--window-start", "packed"), SETTINGS["s1"], methods["ocn"],
                               "craft_s1", 1) == shared
@@ -326,7 +327,7 @@ def test_packed_clones_load_the_packed_view_in_folders_of_their_own_and_share_im
         "ocn_usage_balance1.0_packed_switch_cost0.3")
     assert finetune.clone_dir(switching, SETTINGS["s2"], methods["moe"], "craft_s2_ab", 1).parent.name == (
         "moe_usage_balance1.0_packed")
-    study = parsed("imitation-s1", "--window-start", "packed", "--switch-cost", "0.3")
+    study = parsed("imitation-s1", "--window-start", "packed", "--switch-cost", "0.3", "--expected-nll-weight", "0")
     shared = imitation.run_dir(tmp_path, imitation.VARIANTS[0], 1, imitation.study_overrides(study))
     s1_switching = parsed("s1", "--window-start", "packed", "--switch-cost", "0.3")
     assert finetune.clone_dir(s1_switching, SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
@@ -398,7 +399,7 @@ def test_a_pool_size_and_the_settling_settings_reach_the_clones_and_name_their_f
             == "moe_usage_balance1.0_packed")
 
     # S1's OCN clone is imitation-s1's 6-option run, settled in the same folder under the same settings.
-    study = parsed("imitation-s1", *settle)
+    study = parsed("imitation-s1", *settle, "--expected-nll-weight", "0")
     shared = imitation.run_dir(tmp_path, imitation.VARIANTS[2], 1, imitation.study_overrides(study))
     assert finetune.clone_dir(six, SETTINGS["s1"], methods["ocn"], "craft_s1", 1) == shared
     assert shared.parent.name == "6options_T10_usage_balance1.0_packed"

@@ -26,11 +26,12 @@ def _weights(checkpoint: Path) -> dict:
 def test_imitation_settles_each_run_from_its_checkpoint_and_scores_both(tmp_path):
     done = _reproduce(tmp_path, "--settle-steps", "2", "--settle-termination-cost", "0.3")
     assert done.returncode == 0, done.stderr[-2000:]
-    run = tmp_path / "work" / "imitation_s1" / "3options_T10_usage_balance1.0" / "seed1"
+    # The study's defaults: its S1 recipe (packed view, DART recording, expected NLL).
+    run = tmp_path / "work" / "imitation_s1" / "3options_T10_usage_balance1.0_packed_expected_nll_weight0.1" / "seed1"
     first, settled = (run / "train", run / "settle" / "train")
     command = (run / "settle" / "train_command.txt").read_text()
-    # lerobot-train reads the dataset's training view; ocn-eval scores on the recorded dataset.
-    view = tmp_path / "work" / "craft_s1_training_view"
+    # lerobot-train reads the dataset's packed view; ocn-eval scores on the recorded dataset.
+    view = tmp_path / "work" / "craft_s1_packed32"
     assert f"--dataset.root={view} " in (run / "train_command.txt").read_text() and f"--dataset.root={view} " in command
     assert f"--policy.path={first / 'checkpoints' / 'last' / 'pretrained_model'}" in command
     assert "--policy.termination_cost=0.3" in command and "--policy.termination_penalty=log" in command
