@@ -184,7 +184,11 @@ def test_hil_is_cloned_as_hil_and_checked_against_ocn(tmp_path):
 
     summary = {f"{name} | {reward}": row(success, 2 * success) for reward in ("sparse", "dense")
                for name, success in (("OCN", 0.95), ("HIL", 0.97), ("MoE", 0.1))}
-    checks = {check["check"].split(" (")[0]: check for check in must_show(SETTINGS["s1"], summary)}
+
+    def named_checks() -> dict:
+        return {check["check"].split(" (")[0]: check for check in must_show(SETTINGS["s1"], summary)}
+
+    checks = named_checks()
     assert not checks["sparse: HIL's mean success below OCN's"]["holds"]
     assert checks["sparse: MoE's mean success below OCN's"]["holds"]
     assert checks["dense: OCN's return at least twice the best baseline's"]["value"] == pytest.approx(0.95 / 0.97)
@@ -193,12 +197,10 @@ def test_hil_is_cloned_as_hil_and_checked_against_ocn(tmp_path):
     # With the curves: no S1 return exceeds 3, and MoE never returned below 1.6 on its mean curve.
     summary["MoE | dense"]["curves"] = {"mean_return": {"mean": [1.7, 1.6, 2.2]}}
     summary["HIL | dense"]["curves"] = {"mean_return": {"mean": [0.4, 1.9, 2.5]}}
-    checks = {check["check"].split(" (")[0]: check for check in must_show(SETTINGS["s1"], summary)}
-    reach = checks["dense: twice the best baseline's return within reach at some budget"]
+    reach = named_checks()["dense: twice the best baseline's return within reach at some budget"]
     assert reach["value"] == pytest.approx(3 / 1.6) and not reach["holds"]
     summary["MoE | dense"]["curves"]["mean_return"]["mean"][1] = 1.4
-    reach = {check["check"].split(" (")[0]: check for check in must_show(SETTINGS["s1"], summary)}[
-        "dense: twice the best baseline's return within reach at some budget"]
+    reach = named_checks()["dense: twice the best baseline's return within reach at some budget"]
     assert reach["value"] == pytest.approx(3 / 1.4) and reach["holds"]
 
 
