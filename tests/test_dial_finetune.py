@@ -227,6 +227,22 @@ def test_dial_clones_train_on_the_induction_recipe_and_finetune_on_the_pins(dial
     assert dial.clone_dir(args, moe, 2) == tmp_path / "clone" / "dial2" / "moe_usage_balance1.0" / "seed2"
 
 
+def test_dial_clones_asked_for_the_packed_view_train_on_it_in_folders_of_their_own(dial_dataset, tmp_path):
+    from ocn_data.packed_view import packed_view_path
+    from tools.reproduce import build_parser, dial
+    from tools.reproduce.runs import run_command
+
+    args = build_parser().parse_args(["dial", "--window-start", "packed", "--workdir", str(tmp_path)])
+    for method in dial.METHODS:
+        overrides = dial.clone_overrides(args, method)
+        command, _ = run_command(dial.train_settings(args), dial_dataset, DIAL_REPO_ID, tmp_path / method.key, 1,
+                                 overrides)
+        assert "--policy.window_start=packed" in command, method.key
+        # The view keeps each longer episode's first window, as the recipe's skip_long_episodes trains on.
+        assert f"--dataset.root={packed_view_path(dial_dataset, 120, cut_long=True)}" in command, method.key
+        assert dial.clone_dir(args, method, 1).parent.name == f"{method.key}_usage_balance1.0_packed"
+
+
 def test_dial_checks_hold_only_where_ocn_meets_the_bars_and_beats_moe():
     from tools.reproduce.dial import must_show
 

@@ -101,13 +101,18 @@ def clone_dir(args: argparse.Namespace, method: Method, seed: int) -> Path:
     return args.workdir / "clone" / DATA / f"{method.key}{finetune.clone_study_suffix(args, method)}" / f"seed{seed}"
 
 
+def clone_overrides(args: argparse.Namespace, method: Method) -> dict[str, Any]:
+    """The `--policy.*` settings of the method's clones over `train_settings`: the pool, the method's
+    own recipe and the study-wide settings that also name the clone's folder (`clone_dir`)."""
+    return {"n_options": N_OPTIONS, "temperature": 10.0, **(method.overrides or {}), **METHOD_RECIPE[method.key],
+            **finetune.clone_overrides(args, method)}
+
+
 def clone(args: argparse.Namespace, data: Path, method: Method, seed: int) -> tuple[TrainedRun, dict[str, Any] | None]:
     """The method's behaviour-cloned checkpoint for one seed, the best of its restarts (trained unless
     done before), and the choice between them (None with one restart)."""
-    overrides = {"n_options": N_OPTIONS, "temperature": 10.0, **(method.overrides or {}),
-                 **METHOD_RECIPE[method.key], **finetune.balance_override(args)}
-    return train_best_restart(train_settings(args), data, REPO_ID, clone_dir(args, method, seed), seed, overrides,
-                              restarts_of(args))
+    return train_best_restart(train_settings(args), data, REPO_ID, clone_dir(args, method, seed), seed,
+                              clone_overrides(args, method), restarts_of(args))
 
 
 def restarts_of(args: argparse.Namespace) -> Restarts:
