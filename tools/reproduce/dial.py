@@ -168,8 +168,9 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         f"Written by `{result['command']}` on {machine_words(result['machine'])}, "
         f"{result['date']}. Demonstrations: the 12 two-digit PINs over 1, 2, 4, 8, "
-        f"{settings['episodes_per_task']} each; clones: `lerobot-train`, {settings['steps']} steps of "
-        f"{settings['batch_size']} windows of {settings['window_size']} frames (lr {LR:g}, {LR * DECAY:g} from step "
+        f"{settings['episodes_per_task']} each; clones: `lerobot-train` on {imitation.loading_words(settings)}, "
+        f"{settings['steps']} steps of {settings['batch_size']} windows of {settings['window_size']} frames, longer "
+        f"episodes cut to their first (lr {LR:g}, {LR * DECAY:g} from step "
         f"{settings['lr_decay_step']}), {N_OPTIONS} options, T = 10, usage balance {settings['usage_balance']:g}, "
         f"the best of {settings['restarts']} restarts by validation NLL at step {settings['select_step']}; "
         f"imitation scores: `ocn-eval` on the validation split ({settings['rollouts']} env episodes per PIN and "
