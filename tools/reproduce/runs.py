@@ -214,8 +214,10 @@ def train_best_restart(
 ) -> tuple[TrainedRun, dict[str, Any] | None]:
     """`train_policy` of the run in `run_dir`, or with several `restarts` the best of them trained to
     the full steps in `run_dir/restart<j>`, with the choice (every restart's seed, command and
-    validation NLL) kept in `run_dir/restarts.json` and returned. A choice made by the same commands is
-    reused, so that an interrupted reproduction goes on training the chosen restart."""
+    validation NLL) kept in `run_dir/restarts.json` and returned, with the training wall seconds of all
+    the restarts added up (`train_wall_s`, None if one was not timed): the clone's whole cost. A choice
+    made by the same commands is reused, so that an interrupted reproduction goes on training the
+    chosen restart."""
     restarts.check(settings.steps)
     if restarts.count == 1:
         return train_policy(settings, data, repo_id, run_dir, seed, overrides), None
@@ -239,8 +241,9 @@ def train_best_restart(
                   "chosen_seed": scored[best]["seed"], "restarts": scored}
         run_dir.mkdir(parents=True, exist_ok=True)
         record_path.write_text(json.dumps(choice, indent=2) + "\n")
-    best = choice["chosen"]
-    return train_policy(settings, data, repo_id, folders[best], choice["chosen_seed"], overrides), choice
+    chosen = train_policy(settings, data, repo_id, folders[choice["chosen"]], choice["chosen_seed"], overrides)
+    walls = [recorded_wall_s(folder) for folder in folders]
+    return chosen, {**choice, "train_wall_s": None if None in walls else round(sum(walls), 1)}
 
 
 @dataclass
@@ -369,6 +372,13 @@ def _trained_steps(train_dir: Path) -> int:
     return json.loads(path.read_text())["step"] if path.exists() else 0
 
 
+def recorded_wall_s(run_dir: Path) -> float | None:
+    """The wall seconds of every timed training invocation of the run in `run_dir` added up (None
+    if none was timed)."""
+    path = run_dir / "train_wall_s.json"
+    return json.loads(path.read_text())["total"] if path.exists() else None
+
+
 def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path) -> tuple[float | None, bool]:
     """Run lerobot-train until the run has all its steps: from scratch, or resumed from the last
     checkpoint of a stopped run (a run folder with no checkpoint yet starts over). Returns the wall
@@ -377,7 +387,7 @@ def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path
     train_dir, times_path = run_dir / "train", run_dir / "train_wall_s.json"
     done = _trained_steps(train_dir)
     if done >= settings.steps:
-        return (json.loads(times_path.read_text())["total"] if times_path.exists() else None), False
+        return recorded_wall_s(run_dir), False
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "train_command.txt").write_text(shown + "\n")
     if done == 0:
