@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from ocn_data.record_demos import main as record_demos
-from tools.reproduce.runs import check_recorded_as, check_reusable, record_dataset
+from tools.reproduce.runs import TrainedRun, check_recorded_as, check_reusable, evaluate_run, record_dataset
 
 from conftest import CRAFT_REPO_ID
 
@@ -66,6 +66,19 @@ def test_reuse_ignores_argument_order(tmp_path):
     check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=5000) + " --seed=1 --policy.n_options=3")
     with pytest.raises(SystemExit):
         check_reusable(tmp_path / "run", COMMAND.format(root="/data", steps=5000) + " --seed=2 --policy.n_options=3")
+
+
+def test_a_reused_score_comes_under_the_labels_it_is_asked_with(tmp_path):
+    command = COMMAND.format(root="/data", steps=5000) + " --seed=4"
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "record.json").write_text(json.dumps(
+        {"seed": 1, "restarts": {"chosen_seed": 4}, "train_command": command, "scores": {"nmi": 0.3}}))
+    trained = TrainedRun(tmp_path / "run" / "checkpoint", command, 762.0)
+    labels = {"seed": 1, "restarts": {"chosen_seed": 4, "train_wall_s": 1900.0}}
+    # No ocn-eval runs (the checkpoint does not exist): the record is reused, with this call's labels.
+    record = evaluate_run(tmp_path / "run", trained, tmp_path / "data", "local/tiny", 1, labels)
+    assert record["restarts"] == labels["restarts"] and record["scores"] == {"nmi": 0.3}
+    assert record["train_wall_s"] == 762.0
 
 
 def _recording(root, seed=0):

@@ -337,14 +337,15 @@ def evaluate_run(folder: Path, trained: TrainedRun, data: Path, repo_id: str, ro
                  labels: dict[str, Any]) -> dict[str, Any]:
     """`ocn-eval` of a trained run on the validation split, with the option table read
     (`option_table_summary`), kept as the run's `record.json` (under `labels`, e.g. its variant and
-    seed) and reused from there once written."""
+    seed) and reused from there once written: its scores, under this call's labels, which may say more
+    of the run than the labels it was scored under (a clone's restarts, with their summed time)."""
     from tools.parsing_metrics import option_table_summary
 
     record_path, eval_json = folder / "record.json", folder / "eval.json"
     if record_path.exists():
         record = json.loads(record_path.read_text())
         if same_training(record["train_command"], trained.command):
-            return {**record, **training_record(trained)}
+            return {**record, **labels, **training_record(trained)}
         print(f"rescoring {folder}: its run was trained on since it was scored", flush=True)
     started = time.perf_counter()
     subprocess.run(
