@@ -242,8 +242,7 @@ def train_best_restart(
         run_dir.mkdir(parents=True, exist_ok=True)
         record_path.write_text(json.dumps(choice, indent=2) + "\n")
     chosen = train_policy(settings, data, repo_id, folders[choice["chosen"]], choice["chosen_seed"], overrides)
-    walls = [recorded_wall_s(folder) for folder in folders]
-    return chosen, {**choice, "train_wall_s": None if None in walls else round(sum(walls), 1)}
+    return chosen, {**choice, "train_wall_s": added_wall_s([recorded_wall_s(folder) for folder in folders])}
 
 
 @dataclass
@@ -295,9 +294,8 @@ def settle_policy(settings: TrainSettings, trained: TrainedRun, data: Path, repo
     origin.write_text(trained.command + "\n")
     settled = train_policy(replace(settings, steps=settling.steps), data, repo_id, folder, seed,
                            settling.overrides(), init=trained.checkpoint)
-    walls = (trained.train_wall_s, settled.train_wall_s)
     return TrainedRun(settled.checkpoint, f"{trained.command} && {settled.command}",
-                      None if None in walls else round(sum(walls), 1),
+                      added_wall_s([trained.train_wall_s, settled.train_wall_s]),
                       list(dict.fromkeys(trained.trained_on + settled.trained_on)), trained.timed_from_step,
                       trained.trained_now or settled.trained_now)
 
@@ -307,10 +305,17 @@ def machine_name() -> str:
     return machine_words(machine())
 
 
+def _timings(run_dir: Path) -> dict[str, Any] | None:
+    """A run's `train_wall_s.json`: its timed training invocations and their total (None for a run
+    trained before timing)."""
+    path = run_dir / "train_wall_s.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
 def _invocations(run_dir: Path) -> list[dict[str, Any]]:
     """The timed training invocations of a run, in order (none for a run trained before timing)."""
-    times_path = run_dir / "train_wall_s.json"
-    return json.loads(times_path.read_text())["invocations"] if times_path.exists() else []
+    timings = _timings(run_dir)
+    return timings["invocations"] if timings else []
 
 
 def trained_on(run_dir: Path) -> list[str]:
@@ -376,8 +381,13 @@ def _trained_steps(train_dir: Path) -> int:
 def recorded_wall_s(run_dir: Path) -> float | None:
     """The wall seconds of every timed training invocation of the run in `run_dir` added up (None
     if none was timed)."""
-    path = run_dir / "train_wall_s.json"
-    return json.loads(path.read_text())["total"] if path.exists() else None
+    timings = _timings(run_dir)
+    return timings["total"] if timings else None
+
+
+def added_wall_s(walls: list[float | None]) -> float | None:
+    """Wall seconds of several trainings that make one run, added up (None if one was not timed)."""
+    return None if None in walls else round(sum(walls), 1)
 
 
 def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path) -> tuple[float | None, bool]:
@@ -401,7 +411,7 @@ def train(settings: TrainSettings, command: list[str], shown: str, run_dir: Path
         kept = ("--steps=", "--save_freq=", "--output_dir=", "--dataset.root=")
         command = [command[0], f"--config_path={config}", "--resume=true", *(w for w in command if w.startswith(kept))]
         print(f"resuming {run_dir} from step {done}", flush=True)
-    times = json.loads(times_path.read_text()) if times_path.exists() else {"invocations": [], "total": 0.0}
+    times = _timings(run_dir) or {"invocations": [], "total": 0.0}
     started = time.perf_counter()
     # One math thread per process: the data workers already fill the other cores.
     env = {**os.environ, "OMP_NUM_THREADS": str(settings.threads), "MKL_NUM_THREADS": str(settings.threads)}
