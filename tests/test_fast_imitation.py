@@ -42,6 +42,11 @@ def test_fast_imitation_trains_scores_and_plots(craft_dataset, tmp_path):
         assert sum(point["option_share"]) == pytest.approx(1.0, abs=1e-3)
         for thirds in point["option_by_subtask_third"].values():
             assert all(third is None or sum(third) == pytest.approx(1.0, abs=1e-3) for third in thirds)
+        # Each move into a subtask ("start>ID" first), with its frames' option shares.
+        moves = point["option_by_transition"]
+        assert {move.split(">")[1] for move in moves} == set(point["option_by_subtask"])
+        assert any(move.startswith("start>") for move in moves)
+        assert all(sum(shares) == pytest.approx(1.0, abs=1e-3) for shares in moves.values())
         # Where the parse puts the true boundaries, overall and by the move before each (Craft's actions).
         offsets, by_move = point["boundary_offsets"], point["boundary_offsets_by_previous_action"]
         assert offsets["boundaries"] == sum(entry["boundaries"] for entry in by_move.values()) > 0

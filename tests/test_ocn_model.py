@@ -95,6 +95,34 @@ def test_controller_cell_has_no_termination_head():
     assert out.end is None and cell.w_out.shape == (1, 6, 3 + 5)
 
 
+def test_an_affine_cell_maps_its_input_affinely():
+    torch.manual_seed(0)
+    cell = StackedCell(3, in_dim=7, hidden_size=5, mlp_hidden_size=6, mlp_depth=2, n_out=4, affine=True)
+    x1, x2, h = torch.randn(2, 7), torch.randn(2, 7), torch.randn(3, 2, 5)
+    mixed = cell(0.3 * x1 + 0.7 * x2, h)
+    one, two = cell(x1, h), cell(x2, h)
+    torch.testing.assert_close(mixed.logits, 0.3 * one.logits + 0.7 * two.logits)
+    logit = torch.logit  # the termination is a sigmoid of an affine map
+    torch.testing.assert_close(logit(mixed.end), 0.3 * logit(one.end) + 0.7 * logit(two.end), rtol=1e-4, atol=1e-4)
+    # The tanh cell of the same weights is not affine.
+    tanh = StackedCell(3, in_dim=7, hidden_size=5, mlp_hidden_size=6, mlp_depth=2, n_out=4)
+    tanh.load_state_dict(cell.state_dict())
+    assert not torch.allclose(tanh(0.3 * x1 + 0.7 * x2, h).logits, 0.3 * tanh(x1, h).logits + 0.7 * tanh(x2, h).logits)
+
+
+def test_options_take_their_own_mlp_size_and_the_controller_keeps_its_own():
+    policy = make_policy(option_mlp_hidden_size=4, option_mlp_depth=1, affine_options=True)
+    options, controller = policy.core.options, policy.core.controller
+    assert options.w_x.shape == (N_OPTIONS, STATE_DIM, 4) and len(options.w_mlp) == 0
+    assert options.activation(torch.tensor(3.0)) == 3.0
+    assert controller.w_x.shape == (1, STATE_DIM, 12) and len(controller.w_mlp) == 1
+    assert controller.activation is torch.tanh
+    loss, _ = policy(make_batch())
+    loss.backward()
+    with pytest.raises(ValueError, match="option_mlp_hidden_size and option_mlp_depth must be >= 0"):
+        make_policy(option_mlp_depth=-1)
+
+
 def test_looped_cells_give_the_same_loss_and_gradients():
     batch = make_batch()
     stacked, looped = make_policy(), use_looped_cells(make_policy())

@@ -116,6 +116,9 @@ def test_parse_statistics_shows_a_pair_of_options_sharing_two_subtasks():
         "2": [[0.0, 0.0, 1.0]] * 3,
         "3": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], None],
     }
+    # By the move into each segment: subtask 0 starts both episodes; 3 follows 0 in the first, 2 in the second.
+    assert stats["label_by_transition"] == {"start>0": [0.4286, 0.5714, 0.0], "0>2": [0.0, 0.0, 1.0],
+                                            "0>3": [0.5, 0.5, 0.0]}
     assert stats["segments_per_episode"] == 4.0 and stats["true_segments_per_episode"] == 2.0
 
 
@@ -143,3 +146,21 @@ def test_boundary_offsets_place_each_true_boundary_and_split_them_by_the_move_be
     # Continuous actions (several dimensions) get no breakdown by action.
     continuous = EpisodeArrays(**{**episodes.__dict__, "action": np.zeros((3, 6, 9))})
     assert "boundary_offsets_by_previous_action" not in parse_statistics(continuous, parses)
+
+
+def test_parse_statistics_tells_options_that_follow_the_moves_from_options_that_follow_the_subtasks():
+    from ocn_data.episodes_table import EpisodeArrays
+    from tools.episode_parsing import Segmentation, parse_statistics
+
+    # Subtask 1 comes after 0 in the first episode and after 2 in the second (2 + 2 frames each).
+    subtask_id = np.array([[0, 0, 1, 1], [2, 2, 1, 1]])
+    episodes = EpisodeArrays(state=np.zeros((2, 4, 1)), action=np.zeros((2, 4, 1)),
+                             subtask_index=np.array([[0, 0, 1, 1]] * 2), subtask_id=subtask_id, mask=subtask_id >= 0,
+                             lengths=np.array([4, 4]), tasks=["AB", "CB"], episode_index=np.arange(2))
+    # Option 0 takes subtask 0 and the move 2 > 1; option 1 takes subtask 2 and the move 0 > 1.
+    parses = [Segmentation(np.array([1, 3]), np.array([0, 0, 1, 1])),
+              Segmentation(np.array([1, 3]), np.array([1, 1, 0, 0]))]
+    stats = parse_statistics(episodes, parses)
+    assert stats["label_by_subtask"]["1"] == [0.5, 0.5]
+    assert stats["label_by_transition"] == {"start>0": [1.0, 0.0], "start>2": [0.0, 1.0], "0>1": [0.0, 1.0],
+                                            "2>1": [1.0, 0.0]}

@@ -272,6 +272,10 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
     `label_by_subtask_third`: the same shares in the first, middle and last third of each true
     segment (None for a third without frames), which tell a pair that splits subtasks by target
     from one that splits them by phase, one option starting every subtask and the other finishing it;
+    `label_by_transition`: the same shares per pair of the previous true subtask and this one, keyed
+    "PREVIOUS>SUBTASK" ("start>SUBTASK" for each episode's first), which tell options that follow the
+    subtasks from options that follow the moves between them (a Dial option that takes key 4 to 1 and
+    key 1 to 2 serves two digits, one from each key);
     `boundary_offsets`: where the parse puts each true boundary, one step early, on time, late...
     (`_boundary_offsets`), and for discrete actions the same by the action before the boundary step."""
     true_segments = [len(boundaries_from_labels(episodes.subtask_index[i, :n])) for i, n in enumerate(episodes.lengths)]
@@ -294,6 +298,15 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
                 _shares(labels[(subtasks == subtask) & (thirds == third)], labels.max() + 1) for third in range(3)
             ]
             for subtask in np.unique(subtasks)
+        }
+        previous = np.concatenate(
+            [previous_subtasks(episodes.subtask_index[i, :n], episodes.subtask_id[i, :n])
+             for i, n in enumerate(episodes.lengths)]
+        )
+        stats["label_by_transition"] = {
+            f"{'start' if before < 0 else before}>{subtask}": _shares(
+                labels[(previous == before) & (subtasks == subtask)], labels.max() + 1)
+            for before, subtask in sorted(set(zip(previous.tolist(), subtasks.tolist(), strict=True)))
         }
     offsets = _boundary_offsets(episodes, parses)
     stats["boundary_offsets"] = _offset_shares(offsets)
@@ -336,6 +349,13 @@ def _segment_thirds(segment_index: np.ndarray) -> np.ndarray:
     lengths = np.diff(np.r_[starts, segment_index.size])
     offset = np.arange(segment_index.size) - np.repeat(starts, lengths)
     return 3 * offset // np.repeat(lengths, lengths)
+
+
+def previous_subtasks(segment_index: np.ndarray, subtask_id: np.ndarray) -> np.ndarray:
+    """Per frame of one episode, the subtask id of the true segment before its own (-1 in the first)."""
+    starts = segment_starts(segment_index)
+    before = np.r_[-1, subtask_id[starts[:-1]]]
+    return np.repeat(before, np.diff(np.r_[starts, segment_index.size]))
 
 
 def _shares(labels: np.ndarray, n_labels: int) -> list[float] | None:

@@ -176,6 +176,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
                      "val_nll": action_nll(parses), **score_segmentations(val_split, parses),
                      "option_share": shape.get("label_share"), "option_by_subtask": shape.get("label_by_subtask"),
                      "option_by_subtask_third": shape.get("label_by_subtask_third"),
+                     "option_by_transition": shape.get("label_by_transition"),
                      "boundary_offsets": shape["boundary_offsets"],
                      "boundary_offsets_by_previous_action": shape.get("boundary_offsets_by_previous_action"),
                      "train_frames_per_s": frames / (time.perf_counter() - started)}

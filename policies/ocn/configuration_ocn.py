@@ -57,6 +57,16 @@ class OCNConfig(SequenceConfig):
     hidden_size: int = 128
     mlp_hidden_size: int = 128
     mlp_depth: int = 2
+    # The options' own MLP width and depth (0: the controller's mlp_hidden_size and mlp_depth; the paper
+    # gives both one size), and `affine_options`: MLP layers without their tanh, so that an option's
+    # action parameters and termination logit are affine in its input. Options of less capacity each fit
+    # fewer kinds of motion. On Dial an affine map of the observation per digit explains most of the
+    # expert's control, and per group of key-to-key moves (what wide options settle on) less
+    # (results/dial_option_capacity/), so affine options make one digit's skill the cheapest thing for an
+    # option to be.
+    option_mlp_hidden_size: int = 0
+    option_mlp_depth: int = 0
+    affine_options: bool = False
     temperature: float = 10.0
     # Whether each option carries its hidden state h^o from step to step (eq. 1-3, the paper). False
     # feeds every option step its learned initial state instead, so an option is a function of the
@@ -182,6 +192,9 @@ class OCNConfig(SequenceConfig):
         check_choice("execution", self.execution, EXECUTIONS)
         if self.n_options < 1 or self.mlp_depth < 1:
             raise ValueError(f"n_options and mlp_depth must be >= 1, got {self.n_options} and {self.mlp_depth}.")
+        if self.option_mlp_hidden_size < 0 or self.option_mlp_depth < 0:
+            raise ValueError(f"option_mlp_hidden_size and option_mlp_depth must be >= 0 (0: the controller's), got "
+                             f"{self.option_mlp_hidden_size} and {self.option_mlp_depth}.")
         check_choice("hierarchy", self.hierarchy, HIERARCHIES)
         if self.skill_length < 1:
             raise ValueError(f"skill_length must be >= 1, got {self.skill_length}.")
@@ -227,6 +240,12 @@ class OCNConfig(SequenceConfig):
                 f"decoder: they need hierarchy='moe' and n_options a multiple of decoder_latents, got "
                 f"{self.hierarchy!r} and {self.n_options}."
             )
+
+    @property
+    def option_mlp(self) -> tuple[int, int]:
+        """The options' MLP width and depth, the controller's where `option_mlp_hidden_size` or
+        `option_mlp_depth` is 0."""
+        return self.option_mlp_hidden_size or self.mlp_hidden_size, self.option_mlp_depth or self.mlp_depth
 
     @property
     def fixed_skill_length(self) -> int | None:

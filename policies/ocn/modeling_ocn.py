@@ -107,6 +107,8 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             hidden_size=config.hidden_size,
             mlp_hidden_size=config.mlp_hidden_size,
             mlp_depth=config.mlp_depth,
+            option_mlp=config.option_mlp,
+            affine_options=config.affine_options,
             n_params=self.head.n_params,
             temperature=config.temperature,
             skill_length=config.fixed_skill_length,

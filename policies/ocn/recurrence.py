@@ -143,6 +143,8 @@ class OCNCore(nn.Module):
     probability p whatever the options' terminations say (see `_forced_restarts`).
     The learned initial states (per task for the controller, per option) start at 0, or drawn from
     N(0, `initial_state_std`^2) so that tasks pick different options from the first update.
+    `option_mlp` (width, depth) sizes the option cells' MLP apart from the controller's (None: the same), and
+    `affine_options` drops its tanh (`StackedCell`'s `affine`).
     """
 
     def __init__(
@@ -160,6 +162,8 @@ class OCNCore(nn.Module):
         forced_restart_rate: float = 0.0,
         initial_state_std: float = 0.0,
         options: nn.Module | None = None,
+        option_mlp: tuple[int, int] | None = None,
+        affine_options: bool = False,
     ) -> None:
         super().__init__()
         if skill_length is not None and skill_length < 1:
@@ -175,7 +179,8 @@ class OCNCore(nn.Module):
             1, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_options, with_end=False
         )
         self.options = options if options is not None else StackedCell(
-            n_options, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_params
+            n_options, obs_dim, hidden_size, *(option_mlp or (mlp_hidden_size, mlp_depth)), n_out=n_params,
+            affine=affine_options,
         )
         self.controller_init = _initial_states(n_tasks, hidden_size, initial_state_std)
         self.option_init = _initial_states(n_options, hidden_size, initial_state_std)
