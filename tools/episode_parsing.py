@@ -286,7 +286,7 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
     if all(parse.labels is not None for parse in parses):
         labels = np.concatenate([parse.labels for parse in parses]).astype(np.int64)
         stats["label_share"] = _shares(labels, labels.max() + 1)
-        subtasks = np.concatenate([episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)])
+        subtasks, previous = frame_moves(episodes)
         stats["label_by_subtask"] = {
             str(subtask): _shares(labels[subtasks == subtask], labels.max() + 1) for subtask in np.unique(subtasks)
         }
@@ -299,10 +299,6 @@ def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) ->
             ]
             for subtask in np.unique(subtasks)
         }
-        previous = np.concatenate(
-            [previous_subtasks(episodes.subtask_index[i, :n], episodes.subtask_id[i, :n])
-             for i, n in enumerate(episodes.lengths)]
-        )
         stats["label_by_transition"] = {
             f"{'start' if before < 0 else before}>{subtask}": _shares(
                 labels[(previous == before) & (subtasks == subtask)], labels.max() + 1)
@@ -351,11 +347,17 @@ def _segment_thirds(segment_index: np.ndarray) -> np.ndarray:
     return 3 * offset // np.repeat(lengths, lengths)
 
 
-def previous_subtasks(segment_index: np.ndarray, subtask_id: np.ndarray) -> np.ndarray:
-    """Per frame of one episode, the subtask id of the true segment before its own (-1 in the first)."""
-    starts = segment_starts(segment_index)
-    before = np.r_[-1, subtask_id[starts[:-1]]]
-    return np.repeat(before, np.diff(np.r_[starts, segment_index.size]))
+def frame_moves(episodes: EpisodeArrays) -> tuple[np.ndarray, np.ndarray]:
+    """Per real frame of the episodes, in order: its true subtask id, and the id of the true segment
+    before its own (-1 in an episode's first segment); the two make the move into the subtask."""
+    subtasks, previous = [], []
+    for i, n in enumerate(episodes.lengths):
+        subtask_id = episodes.subtask_id[i, :n]
+        starts = segment_starts(episodes.subtask_index[i, :n])
+        before = np.r_[-1, subtask_id[starts[:-1]]]
+        subtasks.append(subtask_id)
+        previous.append(np.repeat(before, np.diff(np.r_[starts, n])))
+    return np.concatenate(subtasks), np.concatenate(previous)
 
 
 def _shares(labels: np.ndarray, n_labels: int) -> list[float] | None:

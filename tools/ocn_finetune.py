@@ -104,8 +104,7 @@ NOT_SETTINGS = ("out", "resume", "threads")
 # compILE decoders' latents stack only with decoders of the same latent count and width.
 POOL_FIELDS = ("obs_encoder", "action_type", "n_actions", "hidden_size", "mlp_hidden_size", "mlp_depth",
                "option_mlp_hidden_size", "option_mlp_depth", "affine_options", "log_std_min", "log_std_max",
-               "hierarchy",
-               "fixed_skill_length", "decoder_latents", "decoder_hidden_size", "normalization_mapping")
+               "hierarchy", "fixed_skill_length", "decoder_latents", "decoder_hidden_size", "normalization_mapping")
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:

@@ -37,13 +37,9 @@ def affine_r2(state: np.ndarray, action: np.ndarray, groups: np.ndarray) -> floa
 def frame_groups(episodes: Any) -> dict[str, np.ndarray]:
     """Per real frame, the groupings from the labels: none (one group), the true subtask, and the move
     into it (the previous true subtask and this one)."""
-    from tools.episode_parsing import previous_subtasks
+    from tools.episode_parsing import frame_moves
 
-    subtask, previous = [], []
-    for i, n in enumerate(episodes.lengths):
-        subtask.append(episodes.subtask_id[i, :n])
-        previous.append(previous_subtasks(episodes.subtask_index[i, :n], episodes.subtask_id[i, :n]))
-    subtask, previous = np.concatenate(subtask), np.concatenate(previous)
+    subtask, previous = frame_moves(episodes)
     move = (previous + 1) * (subtask.max() + 1) + subtask
     return {"one group": np.zeros_like(subtask), "subtask": subtask, "move into the subtask": move}
 
