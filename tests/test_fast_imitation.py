@@ -15,6 +15,7 @@ from tools.fast_imitation import (
     episode_batch,
     episode_draws,
     main,
+    frame_options,
     option_labels,
     parse_overrides,
     peak_table,
@@ -81,7 +82,7 @@ def test_supervised_options_train_on_the_labelled_split_and_are_scored_as_usual(
     split = load_episodes(craft_dataset, split_episodes(craft_dataset, "train"))
     ids = np.unique(split.subtask_id[split.mask])
     rows = np.array([0, 3])
-    labels = option_labels(split, rows, ids, width=12)
+    labels = option_labels(frame_options(split, ids), rows, split.lengths, width=12)
     assert labels.shape == (2, min(12, int(split.lengths[rows].max())))
     for row, episode in enumerate(rows):
         n = min(12, int(split.lengths[episode]))

@@ -78,12 +78,21 @@ def episode_batch(split: Any, rows: np.ndarray, width: int | None = None) -> dic
             "task": [split.tasks[i] for i in rows.tolist()]}
 
 
-def option_labels(split: Any, rows: np.ndarray, subtask_ids: np.ndarray, width: int | None = None) -> torch.Tensor:
-    """Each frame's option under `--supervise-options` [B, T], cut as `episode_batch` cuts: the rank of
-    its ground-truth subtask id among `subtask_ids` (the training split's, sorted), -1 on padding."""
-    used = min(int(split.lengths[rows].max()), width or split.state.shape[1])
-    ids, mask = split.subtask_id[rows, :used], split.mask[rows, :used]
-    return torch.from_numpy(np.where(mask, np.searchsorted(subtask_ids, ids), -1))
+def frame_options(split: Any, subtask_ids: np.ndarray, labels_file: Path | None = None) -> np.ndarray:
+    """Each frame's option under `--supervise-options` [E, T] (-1 on padding): the rank of its
+    ground-truth subtask id among `subtask_ids` (the training split's, sorted), or the labels that
+    `labels_file` (written by `tools.affine_segmentation`) holds for the split's episodes."""
+    if labels_file is not None:
+        from tools.affine_segmentation import read_labels
+
+        return read_labels(labels_file, split.episode_index, split.lengths, split.mask.shape[1])
+    return np.where(split.mask, np.searchsorted(subtask_ids, split.subtask_id), -1)
+
+
+def option_labels(options: np.ndarray, rows: np.ndarray, lengths: np.ndarray, width: int | None = None) -> torch.Tensor:
+    """The rows of `frame_options` in a batch [B, T], cut as `episode_batch` cuts."""
+    used = min(int(lengths[rows].max()), width or options.shape[1])
+    return torch.from_numpy(options[rows, :used])
 
 
 def episode_draws(lengths: np.ndarray, batch_size: int, sampler: str, rng: np.random.Generator) -> Iterator[np.ndarray]:
@@ -118,6 +127,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
 
     if args.termination_weight != 1.0 and not args.supervise_options:
         raise SystemExit("--termination-weight weighs the supervised terminations' loss; it needs --supervise-options.")
+    if args.option_labels is not None and not args.supervise_options:
+        raise SystemExit("--option-labels replaces the ground truth that --supervise-options trains on; it needs it.")
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     torch.set_num_threads(args.threads)
@@ -141,14 +152,20 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     draw = episode_draws(np.minimum(train_split.lengths, config.window_size), args.batch_size, args.sampler, rng)
     tasks = [world.task_key(task) for task in sorted(set(val_split.tasks), key=config.tasks.index)]
     subtask_ids = np.unique(train_split.subtask_id[train_split.mask])
-    if args.supervise_options and len(subtask_ids) > config.n_options:
+    if args.supervise_options and args.option_labels is None and len(subtask_ids) > config.n_options:
         raise SystemExit(f"--supervise-options gives each of the {len(subtask_ids)} subtasks its own option; "
+                         f"n_options is {config.n_options}.")
+    options = frame_options(train_split, subtask_ids, args.option_labels) if args.supervise_options else None
+    if options is not None and options.max() >= config.n_options:
+        raise SystemExit(f"{args.option_labels} labels frames with option {options.max()}; "
                          f"n_options is {config.n_options}.")
     curve: list[dict[str, Any]] = []
     result = {"command": "python -m tools.fast_imitation " + " ".join(args.argv), "world": world.name,
               "settings": dataclasses.asdict(config) | {"seed": args.seed, "batch_size": args.batch_size,
                                                         "steps": args.steps, "sampler": args.sampler,
                                                         "supervise_options": args.supervise_options,
+                                                        "option_labels": str(args.option_labels)
+                                                        if args.option_labels is not None else None,
                                                         "termination_weight": args.termination_weight}, "curve": curve}
     started, frames = time.perf_counter(), 0
     for step in range(1, args.steps + 1):
@@ -156,7 +173,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         batch = preprocessor(episode_batch(train_split, rows, config.window_size))
         policy.train()
         if args.supervise_options:
-            labels = option_labels(train_split, rows, subtask_ids, config.window_size)
+            labels = option_labels(options, rows, train_split.lengths, config.window_size)
             loss, stats = policy.labelled_forward(batch, labels, args.termination_weight)
         else:
             loss, stats = policy.forward(batch)
@@ -358,6 +375,9 @@ def main(argv: list[str] | None = None) -> int:
                           "at each switch and the options' terminations the switches (OCNPolicy.labelled_forward; "
                           "under hierarchy=moe the controller learns the label at every frame); "
                           "evaluation runs the model as usual. What the model can do once the split is found")
+    run.add_argument("--option-labels", type=Path, default=None,
+                     help="with --supervise-options: train on these per-frame options (an .npz of "
+                          "`python -m tools.affine_segmentation`, which reads no labels) instead of the ground truth")
     run.add_argument("--termination-weight", type=float, default=1.0,
                      help="with --supervise-options: the weight of the terminations' cross-entropy in the loss")
     run.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
