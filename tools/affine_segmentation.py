@@ -180,6 +180,18 @@ def ground_truth_scores(episodes: Any, labels: np.ndarray) -> dict[str, float]:
     return score_segmentations(episodes, parses)
 
 
+def label_episodes(episodes: Any, maps: np.ndarray, action_stats: tuple[np.ndarray, np.ndarray],
+                   switch_penalty: float, episodes_per_pass: int = 1000) -> np.ndarray:
+    """Each frame's map [E, T] (-1 on padding) on the best paths through fitted `maps`, a pass of at most
+    about `episodes_per_pass` episodes at a time so that the error table stays small."""
+    parts = np.array_split(np.arange(len(episodes.lengths)), max(1, len(episodes.lengths) // episodes_per_pass))
+    return np.concatenate([
+        best_paths(squared_errors(episode_frames(episodes.state[part], episodes.action[part], episodes.mask[part],
+                                                 action_stats), maps), episodes.mask[part], switch_penalty)[0]
+        for part in parts
+    ])
+
+
 def write_labels(path: Path, episodes: Any, labels: np.ndarray) -> None:
     """An .npz of each episode's index, length and labels (concatenated), as `--option-labels` reads it."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -219,14 +231,10 @@ def segment_dataset(args: argparse.Namespace) -> dict[str, Any]:
     fitted = min(args.fit_episodes, len(train.tasks))
     fit_part = episode_frames(train.state[:fitted], train.action[:fitted], train.mask[:fitted], action_stats)
     fit = fit_segmentation(fit_part, args.n_options, args.switch_penalty, args.starts, args.seed, args.chunk)
-    labels = np.concatenate([best_paths(squared_errors(episode_frames(train.state[part], train.action[part],
-                                                                      train.mask[part], action_stats), fit.maps),
-                                        train.mask[part], args.switch_penalty)[0]
-                             for part in np.array_split(np.arange(len(train.tasks)), max(1, len(train.tasks) // 1000))])
+    labels = label_episodes(train, fit.maps, action_stats, args.switch_penalty)
     write_labels(args.out, train, labels)
     val = load_episodes(args.root, split_episodes(args.root, "val"))
-    val_labels, _ = best_paths(squared_errors(episode_frames(val.state, val.action, val.mask, action_stats), fit.maps),
-                               val.mask, args.switch_penalty)
+    val_labels = label_episodes(val, fit.maps, action_stats, args.switch_penalty)
     return {"root": str(args.root), "labels": str(args.out), "n_options": args.n_options,
             "switch_penalty": args.switch_penalty, "starts": args.starts, "seed": args.seed, "chunk": args.chunk,
             "fit_episodes": fitted, "cost": fit.cost, "start_costs": fit.start_costs,
