@@ -25,7 +25,12 @@ A dataset whose longest episodes exceed the width (Dial's rare long DART episode
 `cut_long`: those episodes keep their first `width` frames, the frames `--policy.skip_long_episodes`
 trains them on under windows, in a view of its own.
 
-`python -m ocn_data.packed_view --root DATASET --width W [--cut-long-episodes]` makes (or checks) the view.
+A labelled view (`option_labels`, a file of `ocn_data.option_labels`) adds `observation.packed.option`,
+each frame's option label, which `--policy.taught_options=true` teaches (`OCNPolicy.labelled_forward`);
+it lives in a folder named after the file's content.
+
+`python -m ocn_data.packed_view --root DATASET --width W [--cut-long-episodes] [--option-labels F]` makes
+(or checks) the view.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 
 from ocn_data.episodes import EpisodeChunk
 from ocn_data.episodes_table import load_episodes, read_info, split_episodes
+from ocn_data.option_labels import labels_fingerprint, read_labels
 from ocn_data.lerobot_writer import ColumnarDatasetWriter
 from ocn_data.training_view import derived_dataset
 
@@ -47,16 +53,21 @@ from ocn_data.training_view import derived_dataset
 PACKED_STATE = "observation.packed.state"
 PACKED_ACTION = "observation.packed.action"
 PACKED_LENGTH = "observation.packed.length"
-PACKED_KEYS = (PACKED_STATE, PACKED_ACTION, PACKED_LENGTH)
+# Only in a labelled view (`--option-labels`): each frame's taught option, -1 past the end and on
+# episodes the label file leaves out (the validation split).
+PACKED_OPTION = "observation.packed.option"
+PACKED_KEYS = (PACKED_STATE, PACKED_ACTION, PACKED_LENGTH, PACKED_OPTION)
 # Episodes per data file of the view.
 CHUNK_EPISODES = 5000
 
 
-def packed_view_path(root: Path, width: int, cut_long: bool = False) -> Path:
+def packed_view_path(root: Path, width: int, cut_long: bool = False, option_labels: Path | None = None) -> Path:
     """Where the view of the dataset at `root` packed to `width` frames lives: a sibling folder
-    (`_cut` when its longer episodes are cut to their first `width` frames)."""
+    (`_cut` when its longer episodes are cut to their first `width` frames, `_options<hash>` when it
+    holds the option labels of a file, named by the file's content)."""
     root = Path(root)
-    return root.parent / f"{root.name}_packed{width}{'_cut' if cut_long else ''}"
+    labelled = "" if option_labels is None else f"_options{labels_fingerprint(option_labels)[:12]}"
+    return root.parent / f"{root.name}_packed{width}{'_cut' if cut_long else ''}{labelled}"
 
 
 def compact_dtype(values: np.ndarray) -> np.dtype:
@@ -83,22 +94,29 @@ def pad_to_width(values: np.ndarray, mask: np.ndarray, width: int) -> np.ndarray
     return padded
 
 
-def packed_features(source: dict, width: int, state: np.dtype, action: np.dtype) -> dict[str, dict]:
-    """The view's features: the source's state and action (one frame), and the packed columns."""
+def packed_features(source: dict, width: int, state: np.dtype, action: np.dtype,
+                    option: np.dtype | None = None) -> dict[str, dict]:
+    """The view's features: the source's state and action (one frame), and the packed columns (the
+    taught options' too when `option` gives their dtype)."""
     state_size = int(np.prod(source[OBS_STATE]["shape"]))
     action_size = int(np.prod(source[ACTION]["shape"]))
-    return {
+    features = {
         OBS_STATE: source[OBS_STATE],
         ACTION: source[ACTION],
         PACKED_STATE: {"dtype": state.name, "shape": [width * state_size], "names": None},
         PACKED_ACTION: {"dtype": action.name, "shape": [width * action_size], "names": None},
         PACKED_LENGTH: {"dtype": "int64", "shape": [1], "names": None},
     }
+    if option is not None:
+        features[PACKED_OPTION] = {"dtype": option.name, "shape": [width], "names": None}
+    return features
 
 
-def write_packed(root: Path, repo_id: str, view: Path, width: int, cut_long: bool = False) -> None:
+def write_packed(root: Path, repo_id: str, view: Path, width: int, cut_long: bool = False,
+                 option_labels: Path | None = None) -> None:
     """Write the packed view of the dataset at `root` into the new folder `view`; `cut_long` keeps the
-    first `width` frames of longer episodes, as `--policy.skip_long_episodes` trains them on windows."""
+    first `width` frames of longer episodes, as `--policy.skip_long_episodes` trains them on windows;
+    `option_labels`: a label file (`ocn_data.option_labels`) whose labels the view adds."""
     info = read_info(root)
     episodes = load_episodes(root, split_episodes(root, "all"))
     longest = int(episodes.lengths.max())
@@ -109,9 +127,14 @@ def write_packed(root: Path, repo_id: str, view: Path, width: int, cut_long: boo
     count = len(episodes.lengths)
     mask = episodes.mask[:, :width]
     state, action = (pad_to_width(values[:, :width], mask, width) for values in (episodes.state, episodes.action))
+    columns = {}
+    if option_labels is not None:
+        options = read_labels(option_labels, episodes.episode_index, episodes.lengths, width, unlabelled_ok=True)
+        columns[PACKED_OPTION] = options.astype(compact_dtype(options))
     print(f"writing the packed view of {root} ({count} episodes, width {width}) to {view}", flush=True)
     writer = ColumnarDatasetWriter(view, repo_id, info["fps"], packed_features(info["features"], width, state.dtype,
-                                   action.dtype), robot_type=info.get("robot_type"))
+                                   action.dtype, columns[PACKED_OPTION].dtype if columns else None),
+                                     robot_type=info.get("robot_type"))
     for start in range(0, count, CHUNK_EPISODES):
         rows = slice(start, min(count, start + CHUNK_EPISODES))
         n = rows.stop - rows.start
@@ -123,6 +146,7 @@ def write_packed(root: Path, repo_id: str, view: Path, width: int, cut_long: boo
                 PACKED_STATE: state[rows].reshape(n, -1),
                 PACKED_ACTION: action[rows].reshape(n, -1),
                 PACKED_LENGTH: np.minimum(episodes.lengths[rows, None], width).astype(np.int64),
+                **{key: values[rows] for key, values in columns.items()},
             },
         ))
     # The source's statistics of state and action (the view's own cover first frames only) and its splits.
@@ -134,13 +158,16 @@ def write_packed(root: Path, repo_id: str, view: Path, width: int, cut_long: boo
     write_info(view_info, view)
 
 
-def packed_view(root: Path, repo_id: str, width: int, cut_long: bool = False) -> Path:
+def packed_view(root: Path, repo_id: str, width: int, cut_long: bool = False,
+                option_labels: Path | None = None) -> Path:
     """The packed view of the dataset at `root`, made if missing or out of date; returns its root.
-    `cut_long`: episodes longer than `width` keep their first `width` frames (else they are an error)."""
+    `cut_long`: episodes longer than `width` keep their first `width` frames (else they are an error);
+    `option_labels`: a label file whose labels the view holds as `PACKED_OPTION`."""
     root = Path(root)
-    settings = {"packed_width": width, **({"cut_long_episodes": True} if cut_long else {})}
-    return derived_dataset(root, packed_view_path(root, width, cut_long), settings,
-                           lambda view: write_packed(root, repo_id, view, width, cut_long))
+    settings = {"packed_width": width, **({"cut_long_episodes": True} if cut_long else {}),
+                **({"option_labels_sha256": labels_fingerprint(option_labels)} if option_labels else {})}
+    return derived_dataset(root, packed_view_path(root, width, cut_long, option_labels), settings,
+                           lambda view: write_packed(root, repo_id, view, width, cut_long, option_labels))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -154,8 +181,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cut-long-episodes", action="store_true",
                         help="keep the first --width frames of longer episodes (what --policy.skip_long_episodes "
                              "trains on windows), in a view of its own (`_cut`)")
+    parser.add_argument("--option-labels", type=Path,
+                        help="an option label file (tools.affine_segmentation --out) whose labels the view adds, "
+                             "for lerobot-train --policy.taught_options=true")
     args = parser.parse_args(argv)
-    print(packed_view(args.root, args.repo_id, args.width, args.cut_long_episodes))
+    print(packed_view(args.root, args.repo_id, args.width, args.cut_long_episodes, args.option_labels))
     return 0
 
 

@@ -7,15 +7,14 @@ import pytest
 
 from conftest import DIAL_REPO_ID
 from ocn_data.episodes_table import load_episodes, split_episodes
+from ocn_data.option_labels import read_labels, write_labels
 from tools.affine_segmentation import (
     best_paths,
     descend,
     episode_frames,
     fit_segmentation,
     main,
-    read_labels,
     split_and_merge,
-    write_labels,
 )
 from tools.fast_imitation import main as fast_imitation
 from tools.parsing_metrics import normalized_mutual_info
@@ -87,6 +86,10 @@ def test_labels_round_trip_and_a_mismatched_file_is_named(dial_dataset, tmp_path
         read_labels(path, np.r_[episodes.episode_index[:1], 999], episodes.lengths[:2], width)
     with pytest.raises(ValueError, match="another recording"):
         read_labels(path, episodes.episode_index[:1], episodes.lengths[:1] + 1, width)
+    # Cut to a narrower width, and with an episode the file lacks left unlabelled where that is asked for.
+    cut = read_labels(path, np.r_[episodes.episode_index[:1], 999], np.r_[episodes.lengths[:1], 5], 4,
+                      unlabelled_ok=True)
+    assert np.array_equal(cut, [labels[0, :4], [-1] * 4])
 
 
 def test_cli_labels_a_dial_recording_that_supervised_training_then_reads(dial_dataset, craft_dataset, tmp_path):

@@ -11,7 +11,15 @@ import torch
 from conftest import CRAFT_REPO_ID, DIAL_REPO_ID
 from lerobot.utils.constants import OBS_STATE
 from ocn_data.episodes_table import load_episodes, read_info, split_episodes
-from ocn_data.packed_view import PACKED_KEYS, PACKED_LENGTH, PACKED_STATE, compact_dtype, packed_view, packed_view_path
+from ocn_data.packed_view import (
+    PACKED_KEYS,
+    PACKED_LENGTH,
+    PACKED_OPTION,
+    PACKED_STATE,
+    compact_dtype,
+    packed_view,
+    packed_view_path,
+)
 from ocn_data.training_view import MARKER
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.sequence import training_windows
@@ -88,7 +96,7 @@ def test_packed_rows_unpack_to_the_episode_windows_and_give_the_same_loss(world,
 
     windows = processed_batch(loaded(root, train, windowed.config, repo_id), windowed)
     rows = processed_batch(loaded(view, train, packed.config, repo_id), packed)
-    assert set(PACKED_KEYS) <= set(rows)
+    assert set(PACKED_KEYS) - set(rows) == {PACKED_OPTION}  # no labels: an unlabelled view
     mask_w, state_w, action_w = training_windows(windowed.config, windows)
     mask_p, state_p, action_p = training_windows(packed.config, rows)
     episode = windows["episode_index"]

@@ -26,6 +26,8 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from ocn_data.option_labels import write_labels
+
 RIDGE = 1e-3  # keeps each map's normal equations solvable when its frames span few states
 
 
@@ -192,34 +194,10 @@ def label_episodes(episodes: Any, maps: np.ndarray, action_stats: tuple[np.ndarr
     ])
 
 
-def write_labels(path: Path, episodes: Any, labels: np.ndarray) -> None:
-    """An .npz of each episode's index, length and labels (concatenated), as `--option-labels` reads it."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    flat = np.concatenate([labels[row, :length] for row, length in enumerate(episodes.lengths)])
-    np.savez_compressed(path, episode_index=episodes.episode_index, lengths=episodes.lengths, labels=flat)
-
-
-def read_labels(path: Path, episode_index: np.ndarray, lengths: np.ndarray, width: int) -> np.ndarray:
-    """The labels of `write_labels` for the given episodes, padded [E, width] with -1; an episode that
-    the file lacks, or whose length differs, is a ValueError naming it."""
-    stored = np.load(path)
-    offsets = np.r_[0, np.cumsum(stored["lengths"])]
-    where = {int(index): row for row, index in enumerate(stored["episode_index"])}
-    out = np.full((len(episode_index), width), -1)
-    for row, (index, length) in enumerate(zip(episode_index.tolist(), lengths.tolist(), strict=True)):
-        if index not in where:
-            raise ValueError(f"{path} has no labels for episode {index}; label the same dataset's training split.")
-        stored_row = where[index]
-        if stored["lengths"][stored_row] != length:
-            raise ValueError(f"{path} labels {stored['lengths'][stored_row]} frames of episode {index}, "
-                             f"which has {length}; were they written for another recording?")
-        out[row, :length] = stored["labels"][offsets[stored_row]:offsets[stored_row + 1]]
-    return out
-
-
 def segment_dataset(args: argparse.Namespace) -> dict[str, Any]:
     """Fit on the first training episodes, label every training episode, report against the truth."""
     from ocn_data.episodes_table import load_episodes, split_episodes
+    from ocn_data.training_view import metadata_fingerprint
 
     started = time.perf_counter()
     train = load_episodes(args.root, split_episodes(args.root, "train"))
@@ -235,7 +213,8 @@ def segment_dataset(args: argparse.Namespace) -> dict[str, Any]:
     write_labels(args.out, train, labels)
     val = load_episodes(args.root, split_episodes(args.root, "val"))
     val_labels = label_episodes(val, fit.maps, action_stats, args.switch_penalty)
-    return {"root": str(args.root), "labels": str(args.out), "n_options": args.n_options,
+    return {"root": str(args.root), "source_meta_sha256": metadata_fingerprint(args.root), "labels": str(args.out),
+            "n_options": args.n_options,
             "switch_penalty": args.switch_penalty, "starts": args.starts, "seed": args.seed, "chunk": args.chunk,
             "fit_episodes": fitted, "cost": fit.cost, "start_costs": fit.start_costs,
             "split_and_merge_moves_kept": fit.moves_kept, "label_share": np.bincount(
@@ -244,7 +223,7 @@ def segment_dataset(args: argparse.Namespace) -> dict[str, Any]:
             "seconds": time.perf_counter() - started}
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m tools.affine_segmentation", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--root", type=Path, required=True, help="a record_demos dataset with continuous actions")
@@ -258,7 +237,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fit-episodes", type=int, default=1200,
                         help="training episodes the maps are fitted on (the first ones); all are labelled")
     parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     report = segment_dataset(args)
     print(json.dumps({key: report[key] for key in ("cost", "split_and_merge_moves_kept", "train_scores",
                                                    "val_scores")}, indent=1))

@@ -83,7 +83,7 @@ def frame_options(split: Any, subtask_ids: np.ndarray, labels_file: Path | None 
     ground-truth subtask id among `subtask_ids` (the training split's, sorted), or the labels that
     `labels_file` (written by `tools.affine_segmentation`) holds for the split's episodes."""
     if labels_file is not None:
-        from tools.affine_segmentation import read_labels
+        from ocn_data.option_labels import read_labels
 
         return read_labels(labels_file, split.episode_index, split.lengths, split.mask.shape[1])
     return np.where(split.mask, np.searchsorted(subtask_ids, split.subtask_id), -1)

@@ -163,6 +163,16 @@ class OCNConfig(SequenceConfig):
     # all. At 0.1, through lerobot-train on five seeds (results/imitation_s1_expected_nll/), every
     # boundary is on time and every 3-option imitation bar holds (NMI 0.998, alignment 0.999).
     expected_nll_weight: float = 0.0
+    # Train on given option labels instead of inducing them (`OCNPolicy.labelled_forward`): each
+    # frame's NLL under its labelled option, the controller's cross-entropy at each labelled change and
+    # the running option's termination as a binary cross-entropy, weighted by `taught_termination_weight`.
+    # The labels come from a labelled packed view (`ocn_data.packed_view --option-labels`, which needs
+    # window_start="packed"), such as those `tools.affine_segmentation` fits without the subtask labels:
+    # on Dial, where the paper's loss rarely splits the digits, a model taught them and then trained on
+    # the paper's loss met the imitation bars (results/dial_affine_labels/). The other loss terms above
+    # are not used while it is on.
+    taught_options: bool = False
+    taught_termination_weight: float = 1.0
 
     # How `select_action` runs the hierarchy. "soft": the differentiable eq. 17 mixture that training
     # uses. "hard": the option-level semantics of the RL phase (appendix A.1): the controller samples
@@ -229,6 +239,16 @@ class OCNConfig(SequenceConfig):
             raise ValueError(f"initial_state_std must be >= 0, got {self.initial_state_std}.")
         if self.temperature <= 0:
             raise ValueError(f"temperature must be > 0, got {self.temperature}.")
+        if self.taught_options and self.hierarchy not in ("ocn", "moe"):
+            raise ValueError(f"taught_options teaches OCN or MoE their options, not hierarchy={self.hierarchy!r}.")
+        if self.taught_options and not self.packed:
+            raise ValueError("taught_options reads the labels of a labelled packed view: train it with "
+                             f"--policy.window_start=packed, not {self.window_start!r}.")
+        if self.taught_termination_weight < 0:
+            raise ValueError(f"taught_termination_weight must be >= 0, got {self.taught_termination_weight}.")
+        if self.taught_termination_weight != 1.0 and self.hierarchy == "moe":
+            raise ValueError("taught_termination_weight weighs the terminations' loss, which MoE, whose options "
+                             "last one step, does not have.")
         if self.decoder_latents < 0 or self.decoder_hidden_size < 1:
             raise ValueError(
                 f"decoder_latents must be >= 0 and decoder_hidden_size >= 1, got {self.decoder_latents} "

@@ -14,6 +14,8 @@ from torch import Tensor
 
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
+
+from ocn_data.packed_view import PACKED_OPTION
 from policies.sequence import SequencePolicy, frame_mask, training_windows, window_nll
 
 from .configuration_ocn import OCNConfig
@@ -177,8 +179,11 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         return mixture_log_prob(out.weights, component).transpose(0, 1)
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
-        """NLL of the mixed action distribution: mean over each window's real frames, then over windows."""
+        """NLL of the mixed action distribution: mean over each window's real frames, then over windows;
+        with `taught_options`, `labelled_forward`'s loss on the labels of the batch's packed view."""
         mask, state, action = training_windows(self.config, batch)
+        if self.config.taught_options:
+            return self._taught_forward(batch, mask, state, action)
         out = self._unroll(state, batch["task"], mask)
         penalties = {}
         if self.config.termination_cost:
@@ -202,6 +207,23 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             stats["expected_nll"] = expected_stats["nll"]
             loss = loss + self.config.expected_nll_weight * expected
         return loss, stats
+
+    def _taught_forward(self, batch: dict[str, Any], mask: Tensor, state: Tensor,
+                        action: Tensor) -> tuple[Tensor, dict[str, float]]:
+        """`labelled_forward` on the training windows of a labelled packed view's rows."""
+        if PACKED_OPTION not in batch:
+            raise ValueError(f"taught_options needs each frame's option label, the `{PACKED_OPTION}` column of a "
+                             "labelled packed view (python -m ocn_data.packed_view --option-labels FILE); this "
+                             "batch has none.")
+        option = batch[PACKED_OPTION].reshape(mask.shape[0], -1)[:, : mask.shape[1]].long()
+        if (option[mask] < 0).any():
+            raise ValueError("taught_options: an episode of the batch has frames without an option label; the "
+                             "label file must cover every training episode (train on the split it labelled).")
+        if int(option.max()) >= self.config.n_options:
+            raise ValueError(f"taught_options: a frame is labelled option {int(option.max())}, but the policy has "
+                             f"n_options = {self.config.n_options}.")
+        taught = {OBS_STATE: state, ACTION: action, "task": batch["task"]}
+        return self.labelled_forward(taught, option.masked_fill(~mask, -1), self.config.taught_termination_weight)
 
     def labelled_forward(
         self, batch: dict[str, Any], option: Tensor, termination_weight: float = 1.0

@@ -50,7 +50,7 @@ import numpy as np
 from envs.dial.task import DEFAULT_DIGITS, parse_pin_list, pin_code
 from policies.ocn import OCNConfig
 from tools.bench import RESULTS
-from tools.reproduce import finetune, imitation
+from tools.reproduce import finetune, imitation, taught
 from tools.reproduce.finetune import Method, Setting
 from tools.reproduce.report import checks_table, machine_words, provenance, train_time_words, write_result_files
 from tools.reproduce.runs import Restarts, TrainedRun, TrainSettings, evaluate_run, record_dataset, train_best_restart
@@ -98,19 +98,33 @@ def dial_data(args: argparse.Namespace) -> Path:
 
 
 def clone_dir(args: argparse.Namespace, method: Method, seed: int) -> Path:
-    return args.workdir / "clone" / DATA / f"{method.key}{finetune.clone_study_suffix(args, method)}" / f"seed{seed}"
+    suffix = taught.study_suffix(args, method) if taught_split(args) else finetune.clone_study_suffix(args, method)
+    return args.workdir / "clone" / DATA / f"{method.key}{suffix}" / f"seed{seed}"
+
+
+def taught_split(args: argparse.Namespace) -> bool:
+    """Whether the clones are taught the switching affine policy's split (`--split affine`)."""
+    return getattr(args, "split", "induced") == "affine"
 
 
 def clone_overrides(args: argparse.Namespace, method: Method) -> dict[str, Any]:
-    """The `--policy.*` settings of the method's clones over `train_settings`: the pool, the method's
-    own recipe and the study-wide settings that also name the clone's folder (`clone_dir`)."""
-    return {"n_options": N_OPTIONS, "temperature": 10.0, **(method.overrides or {}), **METHOD_RECIPE[method.key],
+    """The `--policy.*` settings of the method's clones over their training settings: the pool, the
+    method's own recipe (taught or induced) and the study-wide settings that also name the clone's
+    folder (`clone_dir`)."""
+    recipe = taught.taught_overrides(method) if taught_split(args) else METHOD_RECIPE[method.key]
+    return {"n_options": N_OPTIONS, "temperature": 10.0, **(method.overrides or {}), **recipe,
             **finetune.clone_overrides(args, method)}
 
 
 def clone(args: argparse.Namespace, data: Path, method: Method, seed: int) -> tuple[TrainedRun, dict[str, Any] | None]:
-    """The method's behaviour-cloned checkpoint for one seed, the best of its restarts (trained unless
-    done before), and the choice between them (None with one restart)."""
+    """The method's behaviour-cloned checkpoint for one seed (trained unless done before) and how it was
+    chosen: among its restarts (None with one restart), or with `--split affine` also between the
+    taught and the continued model (`taught.taught_clone`)."""
+    if taught_split(args):
+        labels = taught.option_labels(args, data, N_OPTIONS)
+        return taught.taught_clone(args, taught.taught_settings(args, DIAL_POLICY, labels), data, REPO_ID,
+                                   clone_dir(args, method, seed), seed, clone_overrides(args, method),
+                                   restarts_of(args))
     return train_best_restart(train_settings(args), data, REPO_ID, clone_dir(args, method, seed), seed,
                               clone_overrides(args, method), restarts_of(args))
 
@@ -171,6 +185,7 @@ def markdown(result: dict[str, Any]) -> str:
     """The human-readable results file."""
     settings = finetune.study_settings(result)
     labels = settings["tasks"].split(",")
+    taught_run = settings.get("split") == "affine"
     lines = [
         f"# Dial: skills from 2-digit PINs, finetuned on {', '.join(labels)}",
         "",
@@ -178,8 +193,7 @@ def markdown(result: dict[str, Any]) -> str:
         f"{result['date']}. Demonstrations: the 12 two-digit PINs over 1, 2, 4, 8, "
         f"{settings['episodes_per_task']} each; clones: `lerobot-train` on {imitation.loading_words(settings)}, "
         f"{settings['steps']} steps of {settings['batch_size']} windows of {settings['window_size']} frames, longer "
-        f"episodes cut to their first (lr {LR:g}, {LR * DECAY:g} from step "
-        f"{settings['lr_decay_step']}), {N_OPTIONS} options, T = 10, usage balance {settings['usage_balance']:g}, "
+        f"episodes cut to their first, {N_OPTIONS} options, T = 10, {clone_recipe_words(settings)}, "
         f"the best of {settings['restarts']} restarts by validation NLL at step {settings['select_step']}; "
         f"imitation scores: `ocn-eval` on the validation split ({settings['rollouts']} env episodes per PIN and "
         f"per option-table cell); finetuning: `ocn-finetune`, {settings['frames']} env frames per run, "
@@ -194,15 +208,17 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         "## Imitation: OCN clones on the validation split",
         "",
-        "| seed | restart chosen (val NLL of each) | " + " | ".join(SCORES.values())
+        "| seed | restart chosen (val NLL of each) | " + ("val NLL taught / continued: kept | " if taught_run else "")
+        + " | ".join(SCORES.values())
         + " | success per PIN | train s of the chosen restart | train s of all restarts |",
-        "|---|---|" + "---|" * len(SCORES) + "---|---|---|",
+        "|---|---|" + ("---|" if taught_run else "") + "---|" * len(SCORES) + "---|---|---|",
     ]
     for record in result["imitation"]:
         scores = record["scores"]
         per_pin = ", ".join(f"{pin} {rate:.2f}" for pin, rate in scores["success_rate"].items())
         cells = " | ".join(f"{scores[key]:.3f}" for key in SCORES)
-        lines.append(f"| {record['seed']} | {restart_words(record['restarts'])} | {cells} | {per_pin} | "
+        kept = f"{taught.guard_words(record['continuation'])} | " if taught_run else ""
+        lines.append(f"| {record['seed']} | {restart_words(record['restarts'])} | {kept}{cells} | {per_pin} | "
                      f"{train_time_words(record)} | {restarts_time_words(record['restarts'])} |")
     lines += [
         "",
@@ -214,6 +230,18 @@ def markdown(result: dict[str, Any]) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def clone_recipe_words(settings: dict[str, Any]) -> str:
+    """How the clones learned their split, for the results file's opening paragraph."""
+    if settings.get("split") == "affine":
+        return (f"taught the labels of a switching affine policy fitted without subtask labels "
+                f"(`tools.affine_segmentation`, fit seed {settings['segmentation_seed']}) at lr {LR:g} (OCN's "
+                f"terminations weighted {taught.TAUGHT_TERMINATION_WEIGHT:g}), then {settings['continue_steps']} "
+                f"steps of the paper's loss at lr {settings['continue_lr']:g}, the continued model kept where its "
+                f"validation NLL is not higher")
+    return (f"the induction recipe (lr {LR:g}, {LR * DECAY:g} from step {settings['lr_decay_step']}), usage balance "
+            f"{settings['usage_balance']:g}")
 
 
 def write_results(args: argparse.Namespace, imitated: list[dict[str, Any]], runs: list[dict[str, Any]],
@@ -233,11 +261,25 @@ def write_results(args: argparse.Namespace, imitated: list[dict[str, Any]], runs
         "runs": runs,
         "wall_s": round(wall_s, 1),
     }
-    stem = write_result_files(args.results, "dial", result, markdown(result))
+    stem = write_result_files(args.results, results_name(args), result, markdown(result))
     if summary:
         title = f"Finetuning in Dial ({args.tasks}) over skills from 2-digit PINs: mean and min-max over seeds"
         finetune.plot(summary, METHODS, labels, "min-max", title, stem.with_suffix(".png"))
     return result
+
+
+def results_name(args: argparse.Namespace) -> str:
+    """The results files' stem and the finetuning runs' setting: `dial`, or `dial_affine` for `--split affine`."""
+    return "dial_affine" if taught_split(args) else "dial"
+
+
+def use_taught_recipe(args: argparse.Namespace) -> None:
+    """The study-wide settings of taught clones: the packed view (which holds the labels) and no usage
+    balance (the induction recipe's, which a taught split has no use for); another balance is refused."""
+    if args.usage_balance not in (0.0, USAGE_BALANCE):
+        raise SystemExit(f"--usage-balance {args.usage_balance:g} is the induction recipe's; the clones of "
+                         "--split affine are taught their split and train without it.")
+    args.usage_balance, args.window_start = 0.0, "packed"
 
 
 def reproduce_dial(args: argparse.Namespace) -> int:
@@ -247,7 +289,9 @@ def reproduce_dial(args: argparse.Namespace) -> int:
     args.tasks = ",".join(pin_code(pin) for pin in parse_pin_list(args.tasks))
     methods = finetune.chosen_methods(args, METHODS)
     restarts_of(args).check(args.steps)  # before the recording, which takes minutes
-    setting = Setting("dial", ((DATA, TWO_DIGIT_PINS),), N_OPTIONS, args.tasks)
+    if taught_split(args):
+        use_taught_recipe(args)
+    setting = Setting(results_name(args), ((DATA, TWO_DIGIT_PINS),), N_OPTIONS, args.tasks)
     data = dial_data(args)
     planned = len(methods) * len(args.rewards) * args.seeds
     imitated: list[dict[str, Any]] = []
@@ -258,8 +302,9 @@ def reproduce_dial(args: argparse.Namespace) -> int:
             trained, choice = clone(args, data, method, seed)
             if method.key == "ocn":
                 folder = clone_dir(args, method, seed)
+                chosen = choice if taught_split(args) else {"restarts": choice}
                 imitated.append(evaluate_run(folder, trained, data, REPO_ID, args.rollouts,
-                                             {"method": method.name, "seed": seed, "restarts": choice}))
+                                             {"method": method.name, "seed": seed, **chosen}))
             for reward in args.rewards:
                 runs.append(finetune.finetune_run(args, setting, method, reward, seed, [trained]))
                 result = write_results(args, imitated, runs, planned, time.perf_counter() - started)
@@ -288,6 +333,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                              "on (restart j of seed s trains with seed s * restarts + j)")
     parser.add_argument("--select-step", type=int, default=2000,
                         help="lerobot-train step at which the restarts of a clone are compared")
+    taught.add_arguments(parser)
     parser.add_argument("--results", type=Path, default=RESULTS)
     # No settling phase: the recipe's termination cost is paid from the first step.
     parser.set_defaults(func=reproduce_dial, usage_balance=USAGE_BALANCE, settle_steps=0)

@@ -83,6 +83,9 @@ class TrainSettings:
     policy: dict[str, Any] = field(default_factory=dict)
     policy_type: str = "ocn"
     save_every: int = SAVE_EVERY
+    # An option label file (`ocn_data.option_labels`) that the packed view of every run holds, for
+    # clones taught their options (`--policy.taught_options=true`).
+    option_labels: Path | None = None
 
 
 @dataclass
@@ -132,7 +135,8 @@ def training_data(settings: TrainSettings, data: Path, repo_id: str, overrides: 
     """The view of the dataset `data` that a run trains on: its packed view (`ocn_data.packed_view`) for
     a policy with window_start "packed" (set here or in `init`'s config; its longer episodes cut where
     the policy skips them on windows, `skip_long_episodes`), else its training view
-    (`ocn_data.training_view`: the same windows as the recording, loaded faster)."""
+    (`ocn_data.training_view`: the same windows as the recording, loaded faster). A packed view holds
+    the settings' option labels, if any."""
     from ocn_data.packed_view import packed_view
     from ocn_data.training_view import training_view
 
@@ -141,7 +145,10 @@ def training_data(settings: TrainSettings, data: Path, repo_id: str, overrides: 
         policy = {**json.loads((init / "config.json").read_text()), **policy}
     if policy.get("window_start") == "packed":
         cut_long = str(policy.get("skip_long_episodes", False)).lower() == "true"
-        return packed_view(data, repo_id, settings.window_size, cut_long)
+        return packed_view(data, repo_id, settings.window_size, cut_long, settings.option_labels)
+    if settings.option_labels is not None:
+        raise ValueError(f"Option labels ({settings.option_labels}) are held by a packed view only: train with "
+                         "window_start='packed'.")
     return training_view(data, repo_id)
 
 
@@ -282,22 +289,29 @@ def settle_dir(run_dir: Path, settling: Settling | None = None) -> Path:
 
 def settle_policy(settings: TrainSettings, trained: TrainedRun, data: Path, repo_id: str, run_dir: Path, seed: int,
                   settling: Settling) -> TrainedRun:
-    """Settle the finished run `trained` into `run_dir/settle` (or reuse it); the result's command
-    chains both trainings and its wall time adds them up. A settling run made from the first run before
-    it was trained on (more `--steps`) starts over: `settled_from.txt` keeps the command it started from."""
-    folder = settle_dir(run_dir, settling)
-    origin = folder / "settled_from.txt"
+    """Settle the finished run `trained` into `run_dir/settle` (or reuse it): `continue_policy`."""
+    return continue_policy(settings, trained, data, repo_id, settle_dir(run_dir, settling), seed, settling.steps,
+                           settling.overrides(), origin_file="settled_from.txt")
+
+
+def continue_policy(settings: TrainSettings, trained: TrainedRun, data: Path, repo_id: str, folder: Path, seed: int,
+                    steps: int, overrides: dict[str, Any], origin_file: str = "continued_from.txt") -> TrainedRun:
+    """Train the finished run `trained` on for `steps` steps under its config and `overrides`, into
+    `folder` (or reuse it); the result's command chains both trainings and its wall time adds them up.
+    A continuation made from the first run before it was trained on (more `--steps`) starts over:
+    `origin_file` keeps the command it started from."""
+    origin = folder / origin_file
     if origin.exists() and not same_training(origin.read_text().strip(), trained.command):
-        print(f"settling {run_dir} again: its run was trained on since", flush=True)
+        print(f"training {folder} again: the run it continues was trained on since", flush=True)
         shutil.rmtree(folder)
     folder.mkdir(parents=True, exist_ok=True)
     origin.write_text(trained.command + "\n")
-    settled = train_policy(replace(settings, steps=settling.steps), data, repo_id, folder, seed,
-                           settling.overrides(), init=trained.checkpoint)
-    return TrainedRun(settled.checkpoint, f"{trained.command} && {settled.command}",
-                      added_wall_s([trained.train_wall_s, settled.train_wall_s]),
-                      list(dict.fromkeys(trained.trained_on + settled.trained_on)), trained.timed_from_step,
-                      trained.trained_now or settled.trained_now)
+    continued = train_policy(replace(settings, steps=steps), data, repo_id, folder, seed, overrides,
+                             init=trained.checkpoint)
+    return TrainedRun(continued.checkpoint, f"{trained.command} && {continued.command}",
+                      added_wall_s([trained.train_wall_s, continued.train_wall_s]),
+                      list(dict.fromkeys(trained.trained_on + continued.trained_on)), trained.timed_from_step,
+                      trained.trained_now or continued.trained_now)
 
 
 def machine_name() -> str:

@@ -1,0 +1,146 @@
+"""`ocn-reproduce dial --split affine`: clones taught a split found without labels, then the paper's loss.
+
+Where the paper's loss alone rarely splits Dial's digits (results/dial_memoryless/), a switching affine
+policy fitted to the demonstrations does, without reading a subtask label (`tools.affine_segmentation`,
+results/dial_affine_labels/). This path of the reproduction fits it once on the recording, writes its
+labels into a labelled packed view, and trains each clone in two `lerobot-train` runs:
+
+1. taught (`--policy.taught_options=true`, `OCNPolicy.labelled_forward`): `--steps` steps at a constant
+   lr of 1e-3, OCN's terminations weighted `TAUGHT_TERMINATION_WEIGHT`; MoE, given the same labels,
+   learns its per-step choice;
+2. continued on the paper's loss (no labels) for `--continue-steps` at `--continue-lr`.
+
+The paper's loss sharpened the taught split on two seeds of four and broke it on one, whose validation
+NLL rose from 8.45 to 9.20 (results/dial_affine_labels/). So the continued model is kept only if it
+clones the validation demonstrations at least as well as the taught one (`validation_nll`, which reads
+no label); the choice is kept in the clone's `continuation.json`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fcntl
+import json
+from pathlib import Path
+from typing import Any
+
+from tools.reproduce import finetune
+from tools.reproduce.finetune import Method
+from tools.reproduce.runs import (
+    Restarts,
+    TrainedRun,
+    TrainSettings,
+    continue_policy,
+    same_training,
+    train_best_restart,
+)
+
+# The taught clones' settings over Dial's base policy (`tools.reproduce.dial.DIAL_POLICY`): those of
+# results/dial_affine_labels/ (recurrent options, the dial_keys encoder, unit-std actions).
+TAUGHT_RECIPE = {"obs_encoder": "dial_keys", "log_std_min": 0.0, "log_std_max": 0.0, "inference_mode": "greedy",
+                 "window_start": "packed", "lr_schedule": "constant", "taught_options": True}
+# Terminations that learn the label changes at five times the weight of the other terms fired where
+# they should on the ground-truth split (results/dial_split_given/); MoE has none.
+TAUGHT_TERMINATION_WEIGHT = 5.0
+METHOD_TAUGHT = {"ocn": {"taught_termination_weight": TAUGHT_TERMINATION_WEIGHT}, "moe": {}}
+# Validation episodes that the continuation's guard scores (`Restarts.val_episodes`' count).
+GUARD_EPISODES = Restarts.val_episodes
+
+
+def option_labels(args: argparse.Namespace, data: Path, n_options: int) -> Path:
+    """The labels of the recording's training split (`tools.affine_segmentation`, fit seed
+    `--segmentation-seed`), fitted on first use; a fit made by another command or on another recording
+    is made again. Reproductions run side by side wait for one fit."""
+    from ocn_data.training_view import metadata_fingerprint
+    from tools import affine_segmentation
+
+    folder = args.workdir / "affine_labels"
+    folder.mkdir(parents=True, exist_ok=True)
+    labels = folder / f"{data.name}_seed{args.segmentation_seed}.npz"
+    argv = ["--root", str(data), "--out", str(labels), "--report", str(labels.with_suffix(".json")),
+            "--n-options", str(n_options), "--seed", str(args.segmentation_seed)]
+    made_by = {"argv": argv, "source_meta_sha256": metadata_fingerprint(data)}
+    record = labels.with_name(f"{labels.stem}_made_by.json")
+    with open(folder / f"{labels.stem}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (labels.exists() and record.exists() and json.loads(record.read_text()) == made_by):
+            record.unlink(missing_ok=True)
+            print(f"fitting the switching affine policy on {data} (about 15 min on 2 cores)", flush=True)
+            affine_segmentation.main(argv)
+            record.write_text(json.dumps(made_by, indent=2) + "\n")
+    return labels
+
+
+def taught_settings(args: argparse.Namespace, base: dict[str, Any], labels: Path) -> TrainSettings:
+    """The taught runs' `lerobot-train` settings: `base` (Dial's policy) under `TAUGHT_RECIPE`, on the
+    packed view that holds `labels`."""
+    return TrainSettings(args.steps, args.batch_size, args.window_size, args.num_workers, args.threads,
+                         {"controller_lr_scale": args.controller_lr_scale, **base, **TAUGHT_RECIPE},
+                         option_labels=labels)
+
+
+def taught_overrides(method: Method) -> dict[str, Any]:
+    """The method's own settings of its taught run."""
+    return METHOD_TAUGHT[method.key]
+
+
+def continuation_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """The continued run's settings over the taught run's config: the paper's loss at `--continue-lr`."""
+    return {"taught_options": False, "optimizer_lr": args.continue_lr}
+
+
+def taught_clone(args: argparse.Namespace, settings: TrainSettings, data: Path, repo_id: str, run_dir: Path,
+                 seed: int, overrides: dict[str, Any], restarts: Restarts) -> tuple[TrainedRun, dict[str, Any]]:
+    """The clone in `run_dir`: taught (the best of `restarts`), then continued, and of the two the continued
+    one unless its validation NLL is higher; returns it and the record of both choices: the restarts'
+    (None with one) and the continuation's."""
+    taught, restart_choice = train_best_restart(settings, data, repo_id, run_dir, seed, overrides, restarts)
+    continued = continue_policy(settings, taught, data, repo_id, run_dir / "continued", seed, args.continue_steps,
+                                continuation_overrides(args))
+    guard = continuation_guard(run_dir / "continuation.json", taught, continued, data)
+    return (continued if guard["kept"] == "continued" else taught), {"restarts": restart_choice,
+                                                                    "continuation": guard}
+
+
+def continuation_guard(path: Path, taught: TrainedRun, continued: TrainedRun, data: Path) -> dict[str, Any]:
+    """Both models' validation NLL (first `GUARD_EPISODES` episodes) and which is kept, written to `path`
+    and reused while both commands stay the same."""
+    if path.exists():
+        guard = json.loads(path.read_text())
+        if same_training(guard["taught_command"], taught.command) and \
+                same_training(guard["continued_command"], continued.command):
+            return guard
+    from tools.episode_parsing import validation_nll
+
+    nlls = {name: validation_nll(run.checkpoint, data, GUARD_EPISODES)
+            for name, run in (("taught", taught), ("continued", continued))}
+    guard = {"val_episodes": GUARD_EPISODES, "taught_val_nll": nlls["taught"], "continued_val_nll": nlls["continued"],
+             "kept": "continued" if nlls["continued"] <= nlls["taught"] else "taught",
+             "taught_command": taught.command, "continued_command": continued.command}
+    path.write_text(json.dumps(guard, indent=2) + "\n")
+    return guard
+
+
+def guard_words(guard: dict[str, Any]) -> str:
+    """The imitation table's cell on the continuation: both validation NLLs and the model kept."""
+    return f"{guard['taught_val_nll']:.3f} / {guard['continued_val_nll']:.3f}: {guard['kept']}"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of `--split affine`."""
+    parser.add_argument("--split", choices=("induced", "affine"), default="induced",
+                        help="how the clones' options split the digits: induced by the paper's loss (the "
+                             "induction recipe), or taught the labels of a switching affine policy fitted without "
+                             "subtask labels, then the paper's loss (tools/reproduce/taught.py); affine writes "
+                             "results/dial_affine.*")
+    parser.add_argument("--segmentation-seed", type=int, default=0,
+                        help="with --split affine: the seed of the switching affine fit")
+    parser.add_argument("--continue-steps", type=int, default=1000,
+                        help="with --split affine: steps on the paper's loss after the taught ones")
+    parser.add_argument("--continue-lr", type=float, default=1e-4,
+                        help="with --split affine: the constant learning rate of those steps")
+
+
+def study_suffix(args: argparse.Namespace, method: Method) -> str:
+    """Folder-name suffix of a taught clone: `_taught_affine`, then the study-wide settings' suffix."""
+    return "_taught_affine" + finetune.clone_study_suffix(args, method)
