@@ -160,6 +160,7 @@ def test_dial_affine_clones_are_taught_then_continued_and_keep_the_better_of_the
     dial.write_results(args, [], [], 0, 1.0)
     text = (tmp_path / "results" / "dial_affine.md").read_text()
     assert "taught the labels of a switching affine policy" in text and "fit seed 0" in text
+    assert "`dial_affine.png`" in text
 
 
 def test_the_affine_split_refuses_the_induction_recipe_s_balance(tmp_path):

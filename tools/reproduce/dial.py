@@ -23,6 +23,10 @@ on the same env-frame budget and at the discount `DIAL_GAMMA` (`--gamma`), not t
 The paper compares OCN with OMPN and MoE; OMPN has no option pool to finetune, and flat PPO over 9
 continuous torques is not in its figure, so MoE is the baseline here.
 
+`--split affine` trains the clones another way (`tools/reproduce/taught.py`): taught the split of a
+switching affine policy fitted to the recording without its labels, then the paper's loss, kept only
+where it does not raise the validation NLL; its results go to results/dial_affine.*.
+
 The default finetuning PINs, 124, 481 and 842: three tasks as in figure 6; no digit directly
 follows itself (as the env's random PINs: the demonstrations never press one key twice in a row);
 each starts on a different digit, all four digits are used, and the three hold six different
@@ -226,7 +230,7 @@ def markdown(result: dict[str, Any]) -> str:
         "",
         *finetune.budget_table(result["summary"], labels),
         "",
-        "Curves: `dial.png` (mean and min-max over seeds).",
+        f"Curves: `{results_name(settings.get('split', 'induced'))}.png` (mean and min-max over seeds).",
         "",
     ]
     return "\n".join(lines)
@@ -261,16 +265,16 @@ def write_results(args: argparse.Namespace, imitated: list[dict[str, Any]], runs
         "runs": runs,
         "wall_s": round(wall_s, 1),
     }
-    stem = write_result_files(args.results, results_name(args), result, markdown(result))
+    stem = write_result_files(args.results, results_name(args.split), result, markdown(result))
     if summary:
         title = f"Finetuning in Dial ({args.tasks}) over skills from 2-digit PINs: mean and min-max over seeds"
         finetune.plot(summary, METHODS, labels, "min-max", title, stem.with_suffix(".png"))
     return result
 
 
-def results_name(args: argparse.Namespace) -> str:
+def results_name(split: str) -> str:
     """The results files' stem and the finetuning runs' setting: `dial`, or `dial_affine` for `--split affine`."""
-    return "dial_affine" if taught_split(args) else "dial"
+    return "dial_affine" if split == "affine" else "dial"
 
 
 def use_taught_recipe(args: argparse.Namespace) -> None:
@@ -291,7 +295,7 @@ def reproduce_dial(args: argparse.Namespace) -> int:
     restarts_of(args).check(args.steps)  # before the recording, which takes minutes
     if taught_split(args):
         use_taught_recipe(args)
-    setting = Setting(results_name(args), ((DATA, TWO_DIGIT_PINS),), N_OPTIONS, args.tasks)
+    setting = Setting(results_name(args.split), ((DATA, TWO_DIGIT_PINS),), N_OPTIONS, args.tasks)
     data = dial_data(args)
     planned = len(methods) * len(args.rewards) * args.seeds
     imitated: list[dict[str, Any]] = []
