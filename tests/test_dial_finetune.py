@@ -224,7 +224,7 @@ def test_dial_clones_train_on_the_induction_recipe_and_finetune_on_the_pins(dial
     # The reproduction's own finetuning step, on the command line's settings, then its results files.
     run = finetune_run(args, setting, dial.METHODS[0], "sparse", 1, [clones["ocn"]])
     assert run["method"] == "OCN" and run["command"].startswith("ocn-finetune") and run["curve"]
-    result = dial.write_results(args, [], [run], 1, 1.0)
+    result = dial.write_results(args, dial_dataset, [], [run], 1, 1.0)
     assert result["runs_finished"] == 1 and (tmp_path / "results" / "dial.md").exists()
     # Clones under the usage balance (Dial's default) live beside the paper-loss ones.
     paper = argparse.Namespace(workdir=tmp_path, usage_balance=0.0)

@@ -157,10 +157,12 @@ def test_dial_affine_clones_are_taught_then_continued_and_keep_the_better_of_the
     assert "--policy.hierarchy=moe" in moe_words and "--policy.taught_options=true" in moe_words
     assert not any(word.startswith("--policy.taught_termination_weight") for word in moe_words)
     # The results files are dial_affine.*, which say how the clones were made.
-    dial.write_results(args, [], [], 0, 1.0)
+    dial.write_results(args, dial_dataset, [], [], 0, 1.0)
     text = (tmp_path / "results" / "dial_affine.md").read_text()
     assert "taught the labels of a switching affine policy" in text and "fit seed 0" in text
-    assert "`dial_affine.png`" in text
+    assert "`dial_affine.png`" in text and "The switching affine fit (seed 0) ended at cost" in text
+    report = json.loads((tmp_path / "results" / "dial_affine.json").read_text())["option_labels"]
+    assert report["cost"] <= min(report["start_costs"]) and 0 <= report["val_scores"]["nmi"] <= 1
 
 
 def test_the_affine_split_refuses_the_induction_recipe_s_balance(tmp_path):

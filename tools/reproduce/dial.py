@@ -206,6 +206,7 @@ def markdown(result: dict[str, Any]) -> str:
         f"iterations, then mean (std) over seeds. Runs finished: {result['runs_finished']} of "
         f"{result['runs_planned']}; wall time of this invocation {result['wall_s'] / 60:.0f} min.",
         "",
+        *([taught.labels_words(result["option_labels"]), ""] if result.get("option_labels") else []),
         "## Checks",
         "",
         *checks_table(result["must_show"]),
@@ -248,9 +249,9 @@ def clone_recipe_words(settings: dict[str, Any]) -> str:
             f"{settings['usage_balance']:g}")
 
 
-def write_results(args: argparse.Namespace, imitated: list[dict[str, Any]], runs: list[dict[str, Any]],
+def write_results(args: argparse.Namespace, data: Path, imitated: list[dict[str, Any]], runs: list[dict[str, Any]],
                   planned: int, wall_s: float) -> dict[str, Any]:
-    """`results/dial.{json,md,png}` from the runs finished so far."""
+    """`results/dial.{json,md,png}` (`dial_affine.*`) from the runs finished so far on the recording `data`."""
     labels = args.tasks.split(",")
     summary = finetune.summarise(runs, labels, METHODS)
     imitation_scores = imitation_summary(imitated)
@@ -258,6 +259,7 @@ def write_results(args: argparse.Namespace, imitated: list[dict[str, Any]], runs
         **provenance(args),
         "runs_finished": len(runs),
         "runs_planned": planned,
+        **({"option_labels": taught.labels_report(args, data)} if taught_split(args) else {}),
         "imitation": imitated,
         "imitation_summary": imitation_scores,
         "summary": summary,
@@ -311,7 +313,7 @@ def reproduce_dial(args: argparse.Namespace) -> int:
                                              {"method": method.name, "seed": seed, **chosen}))
             for reward in args.rewards:
                 runs.append(finetune.finetune_run(args, setting, method, reward, seed, [trained]))
-                result = write_results(args, imitated, runs, planned, time.perf_counter() - started)
+                result = write_results(args, data, imitated, runs, planned, time.perf_counter() - started)
     print(markdown(result))
     return 0
 

@@ -54,9 +54,9 @@ def option_labels(args: argparse.Namespace, data: Path, n_options: int) -> Path:
     from ocn_data.training_view import metadata_fingerprint
     from tools import affine_segmentation
 
-    folder = args.workdir / "affine_labels"
+    labels = labels_path(args, data)
+    folder = labels.parent
     folder.mkdir(parents=True, exist_ok=True)
-    labels = folder / f"{data.name}_seed{args.segmentation_seed}.npz"
     argv = ["--root", str(data), "--out", str(labels), "--report", str(labels.with_suffix(".json")),
             "--n-options", str(n_options), "--seed", str(args.segmentation_seed)]
     made_by = {"argv": argv, "source_meta_sha256": metadata_fingerprint(data)}
@@ -69,6 +69,31 @@ def option_labels(args: argparse.Namespace, data: Path, n_options: int) -> Path:
             affine_segmentation.main(argv)
             record.write_text(json.dumps(made_by, indent=2) + "\n")
     return labels
+
+
+def labels_path(args: argparse.Namespace, data: Path) -> Path:
+    """Where the labels of the recording `data` live: the workdir's `affine_labels/`, the report beside them."""
+    return args.workdir / "affine_labels" / f"{data.name}_seed{args.segmentation_seed}.npz"
+
+
+def labels_report(args: argparse.Namespace, data: Path) -> dict[str, Any] | None:
+    """The switching affine fit's report (`tools.affine_segmentation --report`) for the results file:
+    its cost, wall time and scores against the ground truth (evaluation only); None before the fit."""
+    path = labels_path(args, data).with_suffix(".json")
+    if not path.exists():
+        return None
+    report = json.loads(path.read_text())
+    return {key: report[key] for key in ("seed", "cost", "start_costs", "split_and_merge_moves_kept", "label_share",
+                                         "train_scores", "val_scores", "seconds")}
+
+
+def labels_words(report: dict[str, Any]) -> str:
+    """The results file's sentence on the fitted labels."""
+    val = report["val_scores"]
+    return (f"The switching affine fit (seed {report['seed']}) ended at cost {report['cost']:,.0f} (best random start "
+            f"{min(report['start_costs']):,.0f}, {report['split_and_merge_moves_kept']} split-and-merge moves kept) in "
+            f"{report['seconds']:.0f} s; against the digits, read for this report only, its labels of the validation "
+            f"split score F1@1 {val['f1_tol1']:.3f}, align {val['align_acc']:.3f} and NMI {val['nmi']:.3f}.")
 
 
 def taught_settings(args: argparse.Namespace, base: dict[str, Any], labels: Path) -> TrainSettings:
