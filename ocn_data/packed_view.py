@@ -132,9 +132,9 @@ def write_packed(root: Path, repo_id: str, view: Path, width: int, cut_long: boo
         options = read_labels(option_labels, episodes.episode_index, episodes.lengths, width, unlabelled_ok=True)
         columns[PACKED_OPTION] = options.astype(compact_dtype(options))
     print(f"writing the packed view of {root} ({count} episodes, width {width}) to {view}", flush=True)
-    writer = ColumnarDatasetWriter(view, repo_id, info["fps"], packed_features(info["features"], width, state.dtype,
-                                   action.dtype, columns[PACKED_OPTION].dtype if columns else None),
-                                     robot_type=info.get("robot_type"))
+    features = packed_features(info["features"], width, state.dtype, action.dtype,
+                               columns[PACKED_OPTION].dtype if columns else None)
+    writer = ColumnarDatasetWriter(view, repo_id, info["fps"], features, robot_type=info.get("robot_type"))
     for start in range(0, count, CHUNK_EPISODES):
         rows = slice(start, min(count, start + CHUNK_EPISODES))
         n = rows.stop - rows.start

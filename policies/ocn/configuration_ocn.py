@@ -168,9 +168,9 @@ class OCNConfig(SequenceConfig):
     # the running option's termination as a binary cross-entropy, weighted by `taught_termination_weight`.
     # The labels come from a labelled packed view (`ocn_data.packed_view --option-labels`, which needs
     # window_start="packed"), such as those `tools.affine_segmentation` fits without the subtask labels:
-    # on Dial, where the paper's loss rarely splits the digits, a model taught them and then trained on
-    # the paper's loss met the imitation bars (results/dial_affine_labels/). The other loss terms above
-    # are not used while it is on.
+    # on Dial, where the paper's loss rarely splits the digits, models taught them and then trained on
+    # the paper's loss met the imitation bars on two seeds of four (results/dial_affine_labels/). The
+    # other loss terms above are not used while it is on.
     taught_options: bool = False
     taught_termination_weight: float = 1.0
 
