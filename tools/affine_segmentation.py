@@ -41,13 +41,18 @@ class Frames:
     mask: np.ndarray
 
 
+def action_standardisation(action: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mean and std (at least 1e-8) of the real frames' actions, so that every action dimension counts alike."""
+    real = action[mask]
+    return real.mean(0), real.std(0).clip(1e-8)
+
+
 def episode_frames(state: np.ndarray, action: np.ndarray, mask: np.ndarray,
                    action_stats: tuple[np.ndarray, np.ndarray] | None = None) -> Frames:
     """`Frames` of padded episodes; actions standardised by `action_stats` (mean, std), by default
-    their own over the real frames, so that every action dimension counts alike."""
+    their own (`action_standardisation`)."""
     if action_stats is None:
-        real = action[mask]
-        action_stats = (real.mean(0), real.std(0).clip(1e-8))
+        action_stats = action_standardisation(action, mask)
     inputs = np.concatenate([state, np.ones(state.shape[:2] + (1,))], -1)
     return Frames(inputs, (action - action_stats[0]) / action_stats[1], mask)
 
@@ -204,8 +209,7 @@ def segment_dataset(args: argparse.Namespace) -> dict[str, Any]:
     if not np.issubdtype(train.action.dtype, np.floating):
         raise SystemExit(f"{args.root} has actions of dtype {train.action.dtype}; "
                          "the affine maps need continuous ones.")
-    real = train.action[train.mask]
-    action_stats = (real.mean(0), real.std(0).clip(1e-8))
+    action_stats = action_standardisation(train.action, train.mask)
     fitted = min(args.fit_episodes, len(train.tasks))
     fit_part = episode_frames(train.state[:fitted], train.action[:fitted], train.mask[:fitted], action_stats)
     fit = fit_segmentation(fit_part, args.n_options, args.switch_penalty, args.starts, args.seed, args.chunk)
