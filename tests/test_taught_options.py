@@ -122,7 +122,7 @@ def test_dial_affine_clones_are_taught_then_continued_and_keep_the_better_of_the
         assert flag in words, flag
     assert not any(word.startswith("--policy.usage_balance") for word in words)
     continued = guard["continued_command"].split(" && ")[1].split()
-    assert "--policy.taught_options=false" in continued and "--policy.optimizer_lr=0.0001" in continued
+    assert "--policy.taught_options=false" in continued and f"--policy.optimizer_lr={taught.CONTINUE_LR}" in continued
     assert any(word.startswith("--policy.path=") for word in continued)
     folder = dial.clone_dir(args, ocn, 1)
     assert folder.parent.name == "ocn_taught_affine_packed"
@@ -130,7 +130,8 @@ def test_dial_affine_clones_are_taught_then_continued_and_keep_the_better_of_the
     continued_model = folder / "continued" / "train" / "checkpoints" / "last" / "pretrained_model"
     assert OCNConfig.from_pretrained(taught_model).taught_options
     config = OCNConfig.from_pretrained(continued_model)
-    assert not config.taught_options and config.optimizer_lr == 1e-4 and config.taught_termination_weight == 5.0
+    assert not config.taught_options and config.taught_termination_weight == 5.0
+    assert config.optimizer_lr == taught.CONTINUE_LR
     # The guard kept the model with the lower validation NLL (the continued one on a tie), scored afresh.
     nlls = {"taught": validation_nll(taught_model, dial_dataset, 600),
             "continued": validation_nll(continued_model, dial_dataset, 600)}

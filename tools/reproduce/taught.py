@@ -44,9 +44,10 @@ TAUGHT_RECIPE = {"obs_encoder": "dial_keys", "log_std_min": 0.0, "log_std_max": 
 TAUGHT_TERMINATION_WEIGHT = 5.0
 METHOD_TAUGHT = {"ocn": {"taught_termination_weight": TAUGHT_TERMINATION_WEIGHT}, "moe": {}}
 # The continuation's rate. At 1e-4 it diverged through `lerobot-train` on both seeds of results/dial_affine
-# (gradient norms up to 9e7, validation NLL 8.45 to 9.6). On the taught models the gradient through the
-# options' recurrence explodes on a few episodes (on one of seed 2's batches, 7e4 from each of 20 frames,
-# nearly all of it on the options' weights), and Adam scales up the clipped steps of those few weights.
+# (gradient norms up to 9e7, validation NLL 8.45 to 9.6). On both taught models about one batch in twenty
+# has a gradient norm over ten times the median; the worst comes from one episode, nearly all of it on the
+# options' weights (`python -m tools.gradient_spikes`); Adam, normalising per weight, turns the clipped
+# steps of those few weights into full-size ones, so the rate bounds what each spike moves.
 CONTINUE_LR = 3e-5
 # Validation episodes that the continuation's guard scores (`Restarts.val_episodes`' count).
 GUARD_EPISODES = Restarts.val_episodes
