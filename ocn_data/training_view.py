@@ -73,21 +73,23 @@ def training_view(root: Path, repo_id: str) -> Path:
     return derived_dataset(root, training_view_path(root), {"dropped": dropped}, write)
 
 
-def derived_dataset(root: Path, view: Path, settings: dict, write: Callable[[Path], None]) -> Path:
-    """The dataset `write(view)` derives from the one at `root`, written unless `view` holds one made
-    from the same source metadata with the same `settings`; returns `view`.
+def derived_dataset(root: Path, view: Path, settings: dict, write: Callable[[Path], None],
+                    marker: str = MARKER) -> Path:
+    """The folder `write(view)` derives from the dataset at `root` (a view of it, or a fit on it),
+    written unless `view` holds one made from the same source metadata with the same `settings`;
+    returns `view`. `marker`: where in `view` the record of what made it goes.
 
     Reproductions run side by side (`ocn-reproduce --first-seed`) may ask at once: one writes, the
     others wait. The marker goes in last, so an interrupted write is redone."""
     record = {"source": str(root), "source_meta_sha256": metadata_fingerprint(root), **settings}
-    marker = view / MARKER
+    made_by = view / marker
     with open(view.parent / f"{view.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if marker.is_file() and _same_derivation(json.loads(marker.read_text()), record):
+        if made_by.is_file() and _same_derivation(json.loads(made_by.read_text()), record):
             return view
         shutil.rmtree(view, ignore_errors=True)
         write(view)
-        marker.write_text(json.dumps(record, indent=2) + "\n")
+        made_by.write_text(json.dumps(record, indent=2) + "\n")
     return view
 
 

@@ -110,7 +110,7 @@ def test_dial_affine_clones_are_taught_then_continued_and_keep_the_better_of_the
     assert (args.usage_balance, args.window_start) == (0.0, "packed")
     ocn, moe = dial.METHODS
     trained, choice = dial.clone(args, dial_dataset, ocn, 1)
-    labels = tmp_path / "affine_labels" / f"{dial_dataset.name}_seed0.npz"
+    labels = taught.labels_folder(args, dial_dataset) / taught.LABELS_FILE
     made = labels.stat().st_mtime_ns
     guard = choice["continuation"]
     assert choice["restarts"] is None and guard["continued_command"].startswith(guard["taught_command"] + " && ")
@@ -144,6 +144,8 @@ def test_dial_affine_clones_are_taught_then_continued_and_keep_the_better_of_the
     again, again_choice = dial.clone(args, dial_dataset, ocn, 1)
     assert not again.trained_now and again.checkpoint == trained.checkpoint and again_choice == choice
     assert labels.stat().st_mtime_ns == made
+    made_by = json.loads((labels.parent / "made_by.json").read_text())
+    assert made_by["fit"] == ["--n-options", "4", "--seed", "0"] and (labels.parent / taught.REPORT_FILE).exists()
     # With the two models the other way round, the guard keeps the other one.
     runs = {"taught": taught_model, "continued": continued_model}
     if nlls["taught"] != nlls["continued"]:

@@ -19,7 +19,6 @@ no label); the choice is kept in the clone's `continuation.json`.
 from __future__ import annotations
 
 import argparse
-import fcntl
 import json
 from pathlib import Path
 from typing import Any
@@ -49,43 +48,42 @@ METHOD_TAUGHT = {"ocn": {"taught_termination_weight": TAUGHT_TERMINATION_WEIGHT}
 # options' weights (`python -m tools.gradient_spikes`); Adam, normalising per weight, turns the clipped
 # steps of those few weights into full-size ones, so the rate bounds what each spike moves.
 CONTINUE_LR = 3e-5
+# The files of a fit's folder (`labels_folder`).
+LABELS_FILE, REPORT_FILE = "labels.npz", "report.json"
 # Validation episodes that the continuation's guard scores (`Restarts.val_episodes`' count).
 GUARD_EPISODES = Restarts.val_episodes
 
 
 def option_labels(args: argparse.Namespace, data: Path, n_options: int) -> Path:
     """The labels of the recording's training split (`tools.affine_segmentation`, fit seed
-    `--segmentation-seed`), fitted on first use; a fit made by another command or on another recording
-    is made again. Reproductions run side by side wait for one fit."""
-    from ocn_data.training_view import metadata_fingerprint
+    `--segmentation-seed`), fitted on first use into their own folder (`ocn_data.training_view.derived_dataset`):
+    a fit made with other settings or on another recording is made again, and reproductions run side by
+    side wait for one fit."""
+    from ocn_data.training_view import derived_dataset
     from tools import affine_segmentation
 
-    labels = labels_path(args, data)
-    folder = labels.parent
-    folder.mkdir(parents=True, exist_ok=True)
-    argv = ["--root", str(data), "--out", str(labels), "--report", str(labels.with_suffix(".json")),
-            "--n-options", str(n_options), "--seed", str(args.segmentation_seed)]
-    made_by = {"argv": argv, "source_meta_sha256": metadata_fingerprint(data)}
-    record = labels.with_name(f"{labels.stem}_made_by.json")
-    with open(folder / f"{labels.stem}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (labels.exists() and record.exists() and json.loads(record.read_text()) == made_by):
-            record.unlink(missing_ok=True)
-            print(f"fitting the switching affine policy on {data} (about 15 min on 2 cores)", flush=True)
-            affine_segmentation.main(argv)
-            record.write_text(json.dumps(made_by, indent=2) + "\n")
-    return labels
+    fit = ["--n-options", str(n_options), "--seed", str(args.segmentation_seed)]
+
+    def write(folder: Path) -> None:
+        folder.mkdir(parents=True)
+        print(f"fitting the switching affine policy on {data} (about 6 min on 2 cores)", flush=True)
+        affine_segmentation.main(["--root", str(data), "--out", str(folder / LABELS_FILE),
+                                  "--report", str(folder / REPORT_FILE), *fit])
+
+    args.workdir.joinpath("affine_labels").mkdir(parents=True, exist_ok=True)
+    return derived_dataset(data, labels_folder(args, data), {"fit": fit}, write, marker="made_by.json") / LABELS_FILE
 
 
-def labels_path(args: argparse.Namespace, data: Path) -> Path:
-    """Where the labels of the recording `data` live: the workdir's `affine_labels/`, the report beside them."""
-    return args.workdir / "affine_labels" / f"{data.name}_seed{args.segmentation_seed}.npz"
+def labels_folder(args: argparse.Namespace, data: Path) -> Path:
+    """Where the fit on the recording `data` lives: a folder of the workdir's `affine_labels/` holding
+    the labels (`LABELS_FILE`) and the fit's report (`REPORT_FILE`)."""
+    return args.workdir / "affine_labels" / f"{data.name}_seed{args.segmentation_seed}"
 
 
 def labels_report(args: argparse.Namespace, data: Path) -> dict[str, Any] | None:
     """The switching affine fit's report (`tools.affine_segmentation --report`) for the results file:
     its cost, wall time and scores against the ground truth (evaluation only); None before the fit."""
-    path = labels_path(args, data).with_suffix(".json")
+    path = labels_folder(args, data) / REPORT_FILE
     if not path.exists():
         return None
     report = json.loads(path.read_text())
