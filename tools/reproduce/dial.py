@@ -185,6 +185,13 @@ def must_show(imitated: dict[str, Any], summary: dict[str, dict[str, Any]]) -> l
     return checks
 
 
+def selection_words(settings: dict[str, Any]) -> str:
+    """How each seed's clone was chosen among its restarts (one run: no choice)."""
+    if settings["restarts"] == 1:
+        return "one run per seed (no restarts)"
+    return f"the best of {settings['restarts']} restarts by validation NLL at step {settings['select_step']}"
+
+
 def markdown(result: dict[str, Any]) -> str:
     """The human-readable results file."""
     settings = finetune.study_settings(result)
@@ -198,7 +205,7 @@ def markdown(result: dict[str, Any]) -> str:
         f"{settings['episodes_per_task']} each; clones: `lerobot-train` on {imitation.loading_words(settings)}, "
         f"{settings['steps']} steps of {settings['batch_size']} windows of {settings['window_size']} frames, longer "
         f"episodes cut to their first, {N_OPTIONS} options, T = 10, {clone_recipe_words(settings)}, "
-        f"the best of {settings['restarts']} restarts by validation NLL at step {settings['select_step']}; "
+        f"{selection_words(settings)}; "
         f"imitation scores: `ocn-eval` on the validation split ({settings['rollouts']} env episodes per PIN and "
         f"per option-table cell); finetuning: `ocn-finetune`, {settings['frames']} env frames per run, "
         f"{settings['envs']} envs, entropy bonus {settings['entropy']:g}, discount {settings['gamma']:g}. "
