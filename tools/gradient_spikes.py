@@ -63,10 +63,11 @@ def batch_gradients(policy: Any, preprocessor: Any, split: Any, rows: np.ndarray
         policy.zero_grad()
         share.backward(retain_graph=True)
         episodes.append(gradient_norms(policy))
-    worst = int(np.argmax([total_norm(each) for each in episodes]))
+    episode_norms = [total_norm(each) for each in episodes]
+    worst = int(np.argmax(episode_norms))
     return {"loss": loss.item(), "grad_norm": total_norm(norms),
             "episode_index": [int(split.episode_index[row]) for row in rows],
-            "episode_grad_norm": [total_norm(each) for each in episodes],
+            "episode_grad_norm": episode_norms,
             "worst_episode": int(split.episode_index[rows[worst]]),
             "worst_episode_length": int(split.lengths[rows[worst]]),
             "worst_episode_parameters": dict(sorted(episodes[worst].items(), key=lambda item: -item[1]))}
