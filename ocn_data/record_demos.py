@@ -21,6 +21,7 @@ from envs.craft.world import GRID_SIZE, MODES, REWARDS, parse_task_list, task_de
 from envs.dial.expert import NOISE_LEVELS
 from envs.dial.task import parse_digits, parse_pin_list
 from envs.dial.task import task_description as dial_task_description
+from ocn_data.craft_recorder import CRAFT_DART_NOISE
 from ocn_data.craft_recorder import FPS as CRAFT_FPS
 from ocn_data.craft_recorder import CraftRecorder, craft_features
 from ocn_data.dial_recorder import FPS as DIAL_FPS
@@ -60,9 +61,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--dart-noise",
         type=float,
-        default=0.0,
-        help="Craft: probability per step that the env executes a random action instead of the expert's, "
-        "which stays the recorded label (DART; 0: the expert's own path). Dial draws its own noise",
+        default=None,
+        help=f"Craft: probability per step that the env executes a random action instead of the expert's, "
+        f"which stays the recorded label (DART; 0: the expert's own path; default {CRAFT_DART_NOISE}, what OCN's "
+        "recipe was measured on). Dial draws its own noise",
     )
     p.add_argument(
         "--video", action="store_true", help="Craft: also store rendered frames as the video feature observation.image"
@@ -101,6 +103,8 @@ def _craft_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable
     tasks = parse_task_list(args.tasks, mode)
     episodes_per_task = _positive(args.episodes_per_task, "--episodes-per-task")
     image_shape = (GRID_SIZE * TILE, GRID_SIZE * TILE, 3) if args.video else None
+    if args.dart_noise is None:
+        args.dart_noise = CRAFT_DART_NOISE
     session = {"mode": mode, "tasks": [task_description(t) for t in tasks], "dart_noise": args.dart_noise}
 
     def make() -> ExpertRecorder:
@@ -114,7 +118,7 @@ def _craft_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable
 
 def _dial_setup(args: argparse.Namespace, first_attempt: int) -> tuple[Callable[[], ExpertRecorder], dict, int, dict]:
     """Dial's recorder maker, features, fps and session record: given PINs, or random ones."""
-    if args.video or args.mode or args.dart_noise:
+    if args.video or args.mode or args.dart_noise is not None:
         raise ValueError(
             "--video, --mode and --dart-noise are Craft options; Dial records states only, with noise of its own"
         )

@@ -1,13 +1,15 @@
-"""What the recurrent policies trained on whole episodes share (`ocn`, `ompn`): the configuration
-fields and window plumbing of LeRobot's training loop, the masked loss, and a policy mixin with
-LeRobot's constructor and the task table.
+"""What the recurrent policies trained on whole episodes share (`ocn`, `ompn`, `compile`): the
+configuration fields that follow from the dataset, the episodes held in memory, the masked loss, and
+a policy mixin with LeRobot's constructor and the task table.
 
-Batches arrive as LeRobot builds them: `observation.state` [B, W, S] and `action` [B, W, A] windows
-with `*_is_pad` masks [B, W] and the task strings in `batch["task"]`, or from a packed view
-(`ocn_data.packed_view`) one row per episode. How a sample becomes a training sequence is
-`SequenceConfig.window_start`'s business (see its docstring).
+Training batches: LeRobot loads single frames (the policies ask for no `delta_timestamps`), and the
+policy trains on the whole episode of each sampled frame, read from its `EpisodeMemory`
+(`policies.episode_memory`), from t = 1 with its task's initial state, as the paper trains. A batch
+that already holds episodes ([B, T, S] states from their first frame, with `action_is_pad`) trains
+as it is, which is how probes and tests feed chosen episodes.
 """
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -19,24 +21,22 @@ from envs.craft.observation import OBS_DIM as CRAFT_STATE_DIM
 from envs.dial import OBS_DIM as DIAL_STATE_DIM
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.configs.types import FeatureType
-from lerobot.datasets.io_utils import load_episodes
-from lerobot.optim import AdamConfig, AdamWConfig
-from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig, LRSchedulerConfig
+from lerobot.optim import AdamConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-from ocn_data.packed_view import PACKED_ACTION, PACKED_KEYS, PACKED_LENGTH, PACKED_STATE
-from policies.schedules import StepDecaySchedulerConfig
+from policies.distributed import global_mean_weight
+from policies.episode_memory import EpisodeMemory
 
 # Encoders of Craft's compact state (see policies/ocn/encoders.py); "identity" takes float states as they
-# are (standardised); "dial_keys" reads Dial's raw state and adds each key's log distance.
+# are (standardised); "dial_keys" reads Dial's raw state and adds each key's log distance. "auto" picks
+# from the dataset when the policy is built (`resolve_from_dataset`).
 CRAFT_ENCODERS = ("craft", "craft_full_view")
 RAW_STATE_ENCODERS = (*CRAFT_ENCODERS, "dial_keys")
-OBS_ENCODERS = (*RAW_STATE_ENCODERS, "identity")
-ACTION_TYPES = ("discrete", "continuous")
-WINDOW_STARTS = ("episode", "any", "packed")
+OBS_ENCODERS = ("auto", *RAW_STATE_ENCODERS, "identity")
+ACTION_TYPES = ("auto", "discrete", "continuous")
 INFERENCE_MODES = ("sample", "greedy")
-LR_SCHEDULES = ("constant", "cosine", "step")
 PAD_KEYS = (f"{ACTION}_is_pad", f"{OBS_STATE}_is_pad")
+AUTO = "auto"
 
 
 def check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
@@ -50,49 +50,21 @@ class SequenceConfig(PreTrainedConfig):
     """Fields and LeRobot plumbing of a recurrent policy trained on whole episodes (not registered:
     each policy type subclasses it).
 
-    Training windows: LeRobot's sampler starts a window at every frame of every episode and clamps
-    offsets that leave the episode, flagging them in `*_is_pad`. `window_start` says how the policy
-    turns such a window into a training sequence:
-    - "episode" (default): the window reaches `window_size - 1` frames either side of the sampled
-      frame, so it always holds its whole episode when episodes are at most `window_size` frames
-      long (checked against the dataset when the policy is built). The policy shifts each window to
-      its first real frame, so every sampled frame trains on its whole episode from t = 1 with the
-      task's initial state: the paper's setting, and no window starts mid-episode.
-    - "any": the window is the `window_size` frames from the sampled frame on, and its first frame
-      is treated as t = 1 of a fresh episode. Half the frames to load, but the model is told that a
-      task restarts where it does not.
-    - "packed": no windows; the dataset is a packed view (`python -m ocn_data.packed_view --width
-      window_size`), one row per episode holding all its frames, so LeRobot loads one row per sample
-      instead of a window of frames (several times faster, `results/bench_train.md`). The
-      preprocessor normalises the packed columns as it does states and actions
-      (`policies.ocn.processor_ocn.PackedEpisodeNormalizerStep`), so Dial's standardised states and
-      actions train on it too.
-    "episode" and "any" average the NLL over each window's real frames first, then over the windows
-    that have any: sampling windows at every frame weights an episode by its length, so this is the
-    per-frame mean NLL of the dataset in expectation. A packed view's rows are drawn uniformly, one
-    per episode, so "packed" averages over the batch's real frames (`batch_mean`): the same mean in
-    expectation.
-
-    `skip_long_episodes` (with "episode" windows) trains on datasets whose rare longest episodes
-    exceed `window_size` instead of refusing them: a window whose first position is a real frame
-    may start mid-episode and is left out of the loss, so an episode longer than `window_size`
-    trains on its first `window_size` frames only (from the windows sampled there). The padding
-    flags cannot tell a window sampled exactly at frame `window_size - 1` from a later one, so that
-    one is left out too. Dial's DART-noised demonstrations are mostly under 100 frames with a tail
-    to about 300; a window loads 2 * window_size - 1 frames, so sizing it for the tail would
-    nearly triple LeRobot's loading cost for a few episodes.
+    The fields left at "auto" (or 0) follow from the dataset when the policy is built from one
+    (`resolve_from_dataset`), and the saved config holds what they became: the observation encoder
+    (Craft's compact state, Dial's, or float states as they are), discrete or continuous actions and
+    the number of discrete actions, the task list, and `window_size`, the longest episode, which is
+    what a training sequence may hold.
     """
 
     # The model's name in error messages.
     model_name: ClassVar[str] = "The policy"
 
-    window_size: int = 32
-    window_start: str = "episode"
-    skip_long_episodes: bool = False
+    window_size: int = 0
 
-    obs_encoder: str = "craft"
-    action_type: str = "discrete"
-    n_actions: int = 5
+    obs_encoder: str = AUTO
+    action_type: str = AUTO
+    n_actions: int = 0
     log_std_min: float = -5.0
     log_std_max: float = 2.0
 
@@ -103,39 +75,25 @@ class SequenceConfig(PreTrainedConfig):
 
     optimizer_lr: float = 1e-3
     optimizer_grad_clip_norm: float = 10.0
-    # Decoupled weight decay (AdamW); 0 is the paper's plain Adam.
-    optimizer_weight_decay: float = 0.0
-    # "constant" is the paper's Adam at a fixed lr; "cosine" anneals every parameter group's lr to 0
-    # over `lerobot-train --steps` (no warm-up). On S1, cosine from step 0 keeps OCN's options from
-    # splitting (results/imitation_s1_lr_schedule): use it to continue a trained model, if at all.
-    # "step" keeps the lr until step `lr_decay_step`, then multiplies it by `lr_decay_factor`: on Dial,
-    # memoryless options split at 1e-3 and one seed collapsed there after 3,500 steps, while 1e-4
-    # from step 3,000 kept its split (results/dial_memoryless).
-    lr_schedule: str = "constant"
-    lr_decay_step: int = 0
-    lr_decay_factor: float = 0.1
 
-    # Empty means "derive from obs_encoder and action_type" (see `__post_init__`).
+    # Empty means "derive from obs_encoder and action_type" (see `_default_normalization`).
     normalization_mapping: dict[str, NormalizationMode] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_choice("obs_encoder", self.obs_encoder, OBS_ENCODERS)
         check_choice("action_type", self.action_type, ACTION_TYPES)
-        check_choice("window_start", self.window_start, WINDOW_STARTS)
         check_choice("inference_mode", self.inference_mode, INFERENCE_MODES)
-        check_choice("lr_schedule", self.lr_schedule, LR_SCHEDULES)
-        if self.lr_schedule == "step" and (self.lr_decay_step < 1 or not 0 < self.lr_decay_factor < 1):
-            raise ValueError(
-                "lr_schedule='step' needs lr_decay_step >= 1 and 0 < lr_decay_factor < 1, got "
-                f"{self.lr_decay_step} and {self.lr_decay_factor}."
-            )
-        if self.window_size < 1:
-            raise ValueError(f"window_size must be >= 1, got {self.window_size}.")
-        if self.optimizer_weight_decay < 0:
-            raise ValueError(f"optimizer_weight_decay must be >= 0, got {self.optimizer_weight_decay}.")
-        if not self.normalization_mapping:
+        if self.window_size < 0 or self.n_actions < 0:
+            raise ValueError(f"window_size and n_actions must be >= 0 (0: from the dataset), got "
+                             f"{self.window_size} and {self.n_actions}.")
+        if self.resolved and not self.normalization_mapping:
             self.normalization_mapping = self._default_normalization()
+
+    @property
+    def resolved(self) -> bool:
+        """Whether every field that follows from the dataset holds its value (a saved config's do)."""
+        return AUTO not in (self.obs_encoder, self.action_type) and (self.action_type != "discrete" or self.n_actions)
 
     def _default_normalization(self) -> dict[str, NormalizationMode]:
         """Craft states are symbolic ids and discrete actions are indices: neither may be rescaled; the
@@ -144,26 +102,42 @@ class SequenceConfig(PreTrainedConfig):
         action = NormalizationMode.IDENTITY if self.action_type == "discrete" else NormalizationMode.MEAN_STD
         return {"STATE": state, "ACTION": action}
 
-    @property
-    def observation_delta_indices(self) -> list[int] | None:
-        if self.packed:
-            return None
-        if self.window_start == "episode":
-            return list(range(1 - self.window_size, self.window_size))
-        return list(range(self.window_size))
+    def auto_encoder(self, dataset_meta: Any) -> str:
+        """The observation encoder for a dataset's state: Craft's compact state gets OMPN's features (the
+        paper's observation), any other state is read as floats."""
+        shape = tuple(dataset_meta.features[OBS_STATE]["shape"])
+        if dataset_meta.robot_type == "craft" and shape == (CRAFT_STATE_DIM,):
+            return "craft"
+        return "identity"
+
+    def resolve_from_dataset(self, dataset_meta: Any) -> None:
+        """Fill the "auto" fields from the dataset the policy is built on (see the class docstring)."""
+        features = dataset_meta.features
+        if OBS_STATE not in features or ACTION not in features:
+            raise ValueError(f"{self.model_name} trains on `{OBS_STATE}` and `{ACTION}`; the dataset at "
+                             f"{dataset_meta.root} has {sorted(features)}.")
+        if self.obs_encoder == AUTO:
+            self.obs_encoder = self.auto_encoder(dataset_meta)
+        if self.action_type == AUTO:
+            integer = str(features[ACTION]["dtype"]).startswith(("int", "uint"))
+            self.action_type = "discrete" if integer and tuple(features[ACTION]["shape"]) == (1,) else "continuous"
+        if self.action_type == "discrete" and not self.n_actions:
+            self.n_actions = int(round(float(dataset_meta.stats[ACTION]["max"][0]))) + 1
+        if not self.normalization_mapping:
+            self.normalization_mapping = self._default_normalization()
 
     @property
-    def action_delta_indices(self) -> list[int] | None:
-        return self.observation_delta_indices
+    def observation_delta_indices(self) -> None:
+        """No windows: LeRobot loads single frames, and the policy trains on their whole episodes."""
+        return None
+
+    @property
+    def action_delta_indices(self) -> None:
+        return None
 
     @property
     def reward_delta_indices(self) -> None:
         return None
-
-    @property
-    def packed(self) -> bool:
-        """Whether the policy trains on a packed view (one row per episode) instead of windows."""
-        return self.window_start == "packed"
 
     @property
     def action_dim(self) -> int:
@@ -174,20 +148,10 @@ class SequenceConfig(PreTrainedConfig):
     def state_dim(self) -> int:
         return self.input_features[OBS_STATE].shape[0]
 
-    def get_optimizer_preset(self) -> AdamConfig | AdamWConfig:
-        if self.optimizer_weight_decay:
-            return AdamWConfig(
-                lr=self.optimizer_lr,
-                weight_decay=self.optimizer_weight_decay,
-                grad_clip_norm=self.optimizer_grad_clip_norm,
-            )
+    def get_optimizer_preset(self) -> AdamConfig:
         return AdamConfig(lr=self.optimizer_lr, grad_clip_norm=self.optimizer_grad_clip_norm)
 
-    def get_scheduler_preset(self) -> LRSchedulerConfig | None:
-        if self.lr_schedule == "cosine":
-            return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=0)
-        if self.lr_schedule == "step":
-            return StepDecaySchedulerConfig(decay_step=self.lr_decay_step, factor=self.lr_decay_factor)
+    def get_scheduler_preset(self) -> None:
         return None
 
     def validate_features(self) -> None:
@@ -222,62 +186,24 @@ def tasks_from_meta(dataset_meta: Any) -> list[str]:
     return [str(task) for task in dataset_meta.tasks.sort_values("task_index").index]
 
 
-def episode_lengths(dataset_meta: Any) -> list[int]:
-    """Frames per episode of a LeRobot dataset (its episode table is read from disk if not loaded yet)."""
-    if dataset_meta.total_episodes == 0:
-        return []
-    episodes = dataset_meta.episodes if dataset_meta.episodes is not None else load_episodes(dataset_meta.root)
-    return [int(length) for length in episodes["length"]]
-
-
 def prepare_config(config: SequenceConfig, dataset_meta: Any | None) -> dict[str, int]:
     """Check the config when a policy is built and return its task table (task string -> index).
 
-    `dataset_meta` fills `config.tasks` when it is empty, so the saved config keeps them, and with
-    window_start="episode" its longest episode must fit in a window. A packed view's columns
-    (`ocn_data.packed_view`), which LeRobot takes for state inputs, leave the policy's features.
+    Built from a dataset (`dataset_meta`), the "auto" fields and an empty task list are filled from it,
+    so that the saved config keeps them; built from a saved config, they must be there already.
     """
-    packed_columns = set(PACKED_KEYS) & set(config.input_features or {})
-    if packed_columns and not config.packed:
-        raise ValueError(
-            f"{config.model_name} is built on a packed view (it has {sorted(packed_columns)}), whose episodes are "
-            "single rows: train it with --policy.window_start=packed, or on the recorded dataset."
-        )
-    config.input_features = {key: ft for key, ft in (config.input_features or {}).items() if key not in PACKED_KEYS}
-    config.validate_features()
     name = config.model_name
-    if not config.tasks and dataset_meta is not None:
-        config.tasks = tasks_from_meta(dataset_meta)
+    if dataset_meta is not None:
+        config.resolve_from_dataset(dataset_meta)
+        if not config.tasks:
+            config.tasks = tasks_from_meta(dataset_meta)
+    if not config.resolved:
+        raise ValueError(f"{name}'s obs_encoder, action_type and n_actions follow from its training data: build it "
+                         "from a dataset, or set them.")
+    config.validate_features()
     if not config.tasks:
         raise ValueError(f"{name} needs its task list: set `tasks` or build the policy from a dataset.")
-    if dataset_meta is not None and config.packed:
-        check_packed_width(config, dataset_meta.features)
-    if dataset_meta is not None and config.window_start == "episode" and not config.skip_long_episodes:
-        longest = max(episode_lengths(dataset_meta), default=0)
-        if longest > config.window_size:
-            raise ValueError(
-                f"The dataset has episodes of up to {longest} frames but window_size is "
-                f"{config.window_size}: with window_start='episode' a window must hold a whole "
-                f"episode. Set --policy.window_size={longest} or more, --policy.skip_long_episodes=true "
-                "or --policy.window_start=any."
-            )
     return {task: i for i, task in enumerate(config.tasks)}
-
-
-def check_packed_width(config: SequenceConfig, features: dict[str, dict]) -> None:
-    """A packed view's rows must hold `window_size` frames of the policy's state."""
-    name = config.model_name
-    if PACKED_STATE not in features:
-        raise ValueError(
-            f"{name} with window_start='packed' trains on a packed view, made by `python -m ocn_data.packed_view "
-            f"--root DATASET --width {config.window_size}`; this dataset has no `{PACKED_STATE}` column."
-        )
-    width, state = features[PACKED_STATE]["shape"][0], config.state_dim
-    if width != config.window_size * state:
-        raise ValueError(
-            f"The packed view holds {width // state} frames per episode but window_size is {config.window_size}: "
-            f"set --policy.window_size={width // state} or pack the dataset with --width {config.window_size}."
-        )
 
 
 def frame_mask(batch: dict[str, Any]) -> Tensor:
@@ -289,112 +215,108 @@ def frame_mask(batch: dict[str, Any]) -> Tensor:
     return valid
 
 
-def align_to_first_frame(valid: Tensor, length: int, *windows: Tensor) -> tuple[Tensor, ...]:
-    """Shift each row of windows [B, W', ...] so that it starts at its first real frame.
-
-    Returns the mask [B, length] of the shifted rows, then each window cut to [B, length, ...].
-    Positions past the window's end read its last frame and are masked out.
-    """
-    width = valid.shape[1]
-    first = valid.int().argmax(dim=1)
-    position = first.unsqueeze(1) + torch.arange(length, device=valid.device)
-    inside = position < width
-    index = position.clamp_max(width - 1)
-    mask = valid.gather(1, index) & inside
-    shifted = []
-    for window in windows:
-        gather_index = index.view(*index.shape, *([1] * (window.dim() - 2))).expand(-1, -1, *window.shape[2:])
-        shifted.append(window.gather(1, gather_index))
-    return (mask, *shifted)
-
-
-def training_windows(config: SequenceConfig, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
-    """(mask [B, W], state [B, W, S], action [B, W, ...]) of sequences that each start at t = 1."""
-    if config.packed:
-        return trim_trailing_padding(*unpack_episodes(config, batch))
-    valid = frame_mask(batch)
-    if config.window_start == "any":
-        windows = (valid, batch[OBS_STATE], batch[ACTION])
-    else:
-        if config.skip_long_episodes:
-            # A real first position may mean the episode began before the window: leave it out.
-            valid = valid & ~valid[:, :1]
-        windows = align_to_first_frame(valid, config.window_size, batch[OBS_STATE], batch[ACTION])
-    return trim_trailing_padding(*windows)
-
-
-def unpack_episodes(config: SequenceConfig, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
-    """(mask [B, W], state [B, W, S], action [B, W, ...]) of a packed view's rows (`ocn_data.packed_view`),
-    shaped as LeRobot shapes windows: an action of one value per frame is [B, W]."""
-    length = batch[PACKED_LENGTH].reshape(-1, 1)
-    rows, width = length.shape[0], config.window_size
-    action = batch[PACKED_ACTION].reshape(rows, width, config.action_dim)
-    return (
-        torch.arange(width, device=length.device) < length,
-        batch[PACKED_STATE].reshape(rows, width, config.state_dim),
-        action.squeeze(-1) if config.action_dim == 1 else action,
-    )
-
-
-def trim_trailing_padding(mask: Tensor, *windows: Tensor) -> tuple[Tensor, ...]:
-    """Cut mask [B, W] and windows [B, W, ...] after the last step that any row uses.
-
-    A recurrence costs the same per step whether a step is padding or not, and windows hold whole
-    episodes padded to the longest one the dataset may have: most batches end long before.
-    """
-    used = int(mask.any(0).nonzero().max().item()) + 1 if mask.any() else 1
-    return tuple(window[:, :used] for window in (mask, *windows))
-
-
-def batch_mean(per_window: Tensor, frames: Tensor, packed: bool) -> Tensor:
-    """The batch's loss from each window's loss [B], the window having `frames` [B] real frames:
-    windows sampled at every frame (window_start "episode" or "any") weigh the same, and windows
-    with no real frame (skipped long episodes) not at all; a packed view's episodes, drawn uniformly,
-    weigh by their frames. Either way an episode weighs by its length in expectation, as it did
-    when windows were sampled at its every frame."""
-    weight = frames.float() if packed else (frames > 0).float()
-    return (per_window * weight).sum() / weight.sum().clamp_min(1.0)
+def batch_mean(per_episode: Tensor, frames: Tensor, global_batch: bool = True) -> Tensor:
+    """The batch's loss from each episode's loss [B] (its mean over its `frames` [B] real frames): the
+    mean over the episodes that have any. LeRobot samples frames uniformly and each sampled frame
+    stands for its episode, so an episode is drawn in proportion to its length, and this is the
+    dataset's per-frame mean loss in expectation. In a distributed run the mean is over every process's
+    episodes once DDP averages the gradients (`global_mean_weight`); `global_batch=False` gives this
+    process's own mean, for its logged statistics."""
+    weight = (frames > 0).to(per_episode.dtype)
+    count = global_mean_weight(weight) if global_batch else weight.sum()
+    return (per_episode * weight).sum() / count.clamp_min(1e-6)
 
 
 def window_nll(
     log_prob: Tensor, mask: Tensor, reduction: str, after_first: dict[str, Tensor],
-    penalties: dict[str, tuple[float, Tensor]] | None = None, packed: bool = False,
+    penalties: dict[str, tuple[float, Tensor]] | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
-    """The training loss from log p(a_t) [B, T] of windows with real frames mask [B, T]: the NLL's
-    mean over each window's real frames, then `batch_mean` over the windows (`packed`: of a packed
-    view; reduction "none": per window [B]).
+    """The training loss from log p(a_t) [B, T] of episodes with real frames mask [B, T]: the NLL's
+    mean over each episode's real frames, then `batch_mean` over the episodes (reduction "none": per
+    episode [B]).
 
     Stats: nll, frames_used, and the mean over real frames t > 1 of each `after_first` quantity
     (time-major [T, B], detached here): a model's per-step readout, meaningless at t = 1.
-    `penalties` name (weight, quantity [T, B]) pairs whose mean over each window's real frames t > 1,
-    times the weight, joins that window's loss (stats: the quantity's mean, as for `after_first`).
+    `penalties` name (weight, quantity [T, B]) pairs whose mean over each episode's real frames t > 1,
+    times the weight, joins that episode's loss (stats: the quantity's mean, as for `after_first`).
     """
     mask = mask.float()
     frames = mask.sum(1)
-    per_window = (-log_prob * mask).sum(1) / frames.clamp_min(1.0)
+    per_episode = (-log_prob * mask).sum(1) / frames.clamp_min(1.0)
     later = mask[:, 1:]
-    stats = {"nll": batch_mean(per_window, frames, packed).item(), "frames_used": int(frames.sum().item())}
+    stats = {"nll": batch_mean(per_episode, frames, global_batch=False).item(), "frames_used": int(frames.sum().item())}
     for name, (weight, value) in {**{name: (0.0, v) for name, v in after_first.items()}, **(penalties or {})}.items():
         sums = (value[1:].transpose(0, 1) * later).sum(1)
         stats[name] = float(sums.detach().sum() / later.sum().clamp_min(1.0))
         if weight:
-            per_window = per_window + weight * sums / later.sum(1).clamp_min(1.0)
+            per_episode = per_episode + weight * sums / later.sum(1).clamp_min(1.0)
     if reduction == "none":
-        return per_window, stats
-    return batch_mean(per_window, frames, packed), stats
+        return per_episode, stats
+    return batch_mean(per_episode, frames), stats
 
 
 class SequencePolicy:
     """Mixin of the LeRobot policies over whole episodes, placed before `PreTrainedPolicy` in the
-    bases: LeRobot's constructor, the task table, and `select_action` from `predict_action_chunk`."""
+    bases: LeRobot's constructor, the episodes in memory, the task table, and `select_action` from
+    `predict_action_chunk`."""
 
     config: SequenceConfig
 
     def __init__(self, config: SequenceConfig, dataset_meta: Any | None = None, **kwargs: Any) -> None:
-        """LeRobot's factory also passes `dataset_stats`, unused: normalisation lives in the processors.
-        `dataset_meta` fills `config.tasks` when it is empty, so the saved config keeps them."""
+        """LeRobot's factory also passes `dataset_stats`, unused: normalisation lives in the processors
+        (and, for the episodes in memory, in `_remember_episodes`)."""
         super().__init__(config)
         self._task_ids = prepare_config(config, dataset_meta)
+        self._episodes: EpisodeMemory | None = None
+        if dataset_meta is not None:
+            self._remember_episodes(dataset_meta)
+
+    def _remember_episodes(self, dataset_meta: Any) -> None:
+        """Read the dataset's states and actions into memory, normalised as the preprocessor normalises a
+        frame, and size `window_size` to its longest episode."""
+        from lerobot.processor import NormalizerProcessorStep
+
+        memory = EpisodeMemory.read(dataset_meta.root, [OBS_STATE, ACTION])
+        features = {**self.config.input_features, **self.config.output_features}
+        normalizer = NormalizerProcessorStep(features=features, norm_map=self.config.normalization_mapping,
+                                             stats=dataset_meta.stats)
+        for key in (OBS_STATE, ACTION):
+            values = memory.frames[key]
+            memory.frames[key] = normalizer._apply_transform(values.float(), key, features[key].type).to(values.dtype) \
+                if values.is_floating_point() else values
+        self._episodes = memory
+        self.config.window_size = memory.longest
+        logging.info(f"{self.config.model_name} holds the {int((memory.length > 0).sum())} episodes of "
+                     f"{dataset_meta.root} in memory and trains on the {memory.n_trainable} of split "
+                     f"'{memory.split}'; frames LeRobot samples from other episodes are left out of the loss.")
+
+    def training_windows(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor, list[str]]:
+        """(mask [B, T], state [B, T, S], action [B, T, ...], tasks [B]) of whole episodes from t = 1: the
+        episodes of LeRobot's sampled frames, from memory, or a batch that already holds episodes."""
+        if batch[OBS_STATE].dim() == 3:
+            tasks = batch["task"]
+            return frame_mask(batch), batch[OBS_STATE], batch[ACTION], [tasks] * len(batch[OBS_STATE]) \
+                if isinstance(tasks, str) else list(tasks)
+        if self._episodes is None or "episode_index" not in batch:
+            raise ValueError(f"{self.config.model_name} trains on whole episodes: build it from the dataset it trains "
+                             "on (lerobot-train does) so that it holds them, or give it a batch of episodes.")
+        device = batch[OBS_STATE].device
+        if self._episodes.start.device != device:
+            self._episodes = self._episodes.to(device)
+        episode_index = batch["episode_index"].reshape(-1).long().to(device)
+        if self.training:
+            # Episodes held out by the dataset's split leave the batch; a batch of nothing else keeps
+            # them masked, so that its loss is still a (zero) function of the weights.
+            trainable = self._episodes.trainable[episode_index]
+            if trainable.any():
+                episode_index = episode_index[trainable]
+        mask, frames, task_index = self._episodes.batch(episode_index)
+        if self.training:
+            mask &= self._episodes.trainable[episode_index][:, None]
+        action = frames[ACTION]
+        if action.shape[-1] == 1 and self.config.action_type == "discrete":
+            action = action.squeeze(-1)
+        return mask, frames[OBS_STATE], action, [self.config.tasks[int(i)] for i in task_index]
 
     def task_index(self, tasks: Sequence[str] | str | None, batch_size: int) -> Tensor:
         """Map a batch's task strings (one string: the whole batch) to rows of the per-task parameters."""

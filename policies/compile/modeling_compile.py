@@ -42,7 +42,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn.encoders import make_encoder
 from policies.ocn.heads import make_action_head
-from policies.sequence import SequencePolicy, batch_mean, frame_mask, training_windows
+from policies.sequence import SequencePolicy, batch_mean, frame_mask
 
 from .configuration_compile import CompILEConfig
 
@@ -246,7 +246,7 @@ class CompILEPolicy(SequencePolicy, PreTrainedPolicy):
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """compILE's loss: per episode window, then the mean over windows with real frames (reduction
         "none": per window [B]). Relaxed samples in training mode, argmax ones in eval mode."""
-        mask, state, action = training_windows(self.config, batch)
+        mask, state, action, _ = self.training_windows(batch)
         out = self._run(state, action, mask, hard=not self.training)
         per_window, terms = compile_loss(out, mask, self.config)
         frames = mask.sum(1)
@@ -261,7 +261,7 @@ class CompILEPolicy(SequencePolicy, PreTrainedPolicy):
         }
         if reduction == "none":
             return per_window * used, stats
-        return batch_mean(per_window, frames, self.config.packed), stats
+        return batch_mean(per_window, frames), stats
 
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:

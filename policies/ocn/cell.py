@@ -67,11 +67,6 @@ class SideBySide:
         return self._matrix
 
 
-def _identity(x: Tensor) -> Tensor:
-    """An affine cell's activation."""
-    return x
-
-
 def split_heads(out: Tensor, n_out: int, hidden_size: int, with_end: bool) -> CellOutput:
     """A cell's output layer [N, B, n_out + d_hid (+ 1)] as its output head, new state and termination."""
     logits, hidden, *end = out.split([n_out, hidden_size, int(with_end)], dim=-1)
@@ -80,10 +75,8 @@ def split_heads(out: Tensor, n_out: int, hidden_size: int, with_end: bool) -> Ce
 
 
 class StackedCell(nn.Module):
-    """N independent cells: h^ = MLP([x, h]), out = W_out h^, h = tanh(W_hid h^), e = sigmoid(w_end h^).
-
-    The MLP's layers are tanh, or with `affine` none: h^ is then an affine map of [x, h], so each output
-    (and each termination's logit) is affine in the input.
+    """N independent cells: h^ = MLP([x, h]) (tanh layers), out = W_out h^, h = tanh(W_hid h^),
+    e = sigmoid(w_end h^).
 
     The first MLP layer is split into an observation part and a recurrent part so that the
     observation part, which does not depend on the recurrence, can be computed for a whole window
@@ -99,11 +92,9 @@ class StackedCell(nn.Module):
         mlp_depth: int,
         n_out: int,
         with_end: bool = True,
-        affine: bool = False,
     ) -> None:
         super().__init__()
         self.n_modules = n_modules
-        self.activation = _identity if affine else torch.tanh
         self.hidden_size = hidden_size
         self.n_out = n_out
         self.with_end = with_end
@@ -134,11 +125,11 @@ class StackedCell(nn.Module):
         states): its recurrent term is then computed once and broadcast.
         """
         if h.shape[1] == x_proj.shape[1]:
-            act = self.activation(torch.baddbmm(x_proj, h, self.w_h))
+            act = torch.tanh(torch.baddbmm(x_proj, h, self.w_h))
         else:
-            act = self.activation(x_proj + torch.bmm(h, self.w_h))
+            act = torch.tanh(x_proj + torch.bmm(h, self.w_h))
         for weight, bias in zip(self.w_mlp, self.b_mlp, strict=True):
-            act = self.activation(torch.baddbmm(bias, act, weight))
+            act = torch.tanh(torch.baddbmm(bias, act, weight))
         return split_heads(torch.baddbmm(self.b_out, act, self.w_out), self.n_out, self.hidden_size, self.with_end)
 
     def forward(self, x: Tensor, h: Tensor) -> CellOutput:

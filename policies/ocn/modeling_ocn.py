@@ -4,7 +4,6 @@ Batch plumbing shared with the other whole-episode policies (windows, masks, tas
 `policies.sequence`'s.
 """
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -15,12 +14,13 @@ from torch import Tensor
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-from ocn_data.packed_view import PACKED_OPTION
-from policies.sequence import SequencePolicy, frame_mask, training_windows, window_nll
+from policies.distributed import global_sum
+from policies.schedules import clock_of
+from policies.sequence import SequencePolicy, frame_mask, window_nll
 
 from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
-from .heads import expected_log_prob, make_action_head, mixture_log_prob, option_responsibilities
+from .heads import expected_log_prob, make_action_head, mixture_log_prob
 from .latent_options import LatentDecoderPool
 from .recurrence import HardState, OCNCore, OCNState, StepOutput, longest_first
 
@@ -40,56 +40,21 @@ class StepReport:
     decided: Tensor | None = None
 
 
-def termination_penalty(config: OCNConfig, end: Tensor) -> Tensor:
-    """What the termination cost charges for each e_t (`OCNConfig.termination_penalty`). The log form
-    is clamped below e_t = 1, which only the forced first step reaches (and the cost leaves out)."""
-    if config.termination_penalty == "linear":
-        return end
+def settle_penalty(end: Tensor) -> Tensor:
+    """-log(1 - e_t), the NLL of "go on" under a Bernoulli(e_t), which the settling phase charges for each
+    termination (`Recipe.settle_termination_cost`). Its gradient in the termination logit, e_t, does not
+    vanish where a termination is confident, as a linear cost's e_t (1 - e_t) does. Clamped below e_t = 1,
+    which only the forced first step reaches (and the cost leaves out)."""
     return -torch.log1p(-end.clamp_max(1.0 - 1e-6))
 
 
-def explained_terminations(out: StepOutput, component: Tensor) -> Tensor:
-    """sum_i p^c_{t-1,i} e_{i,t} p_i(a_t) [T, B] (`OCNConfig.explained_termination_cost`), from time-major
-    outputs and `_component_log_prob`'s log p_k(a_t) [T, 2N, B], whose first N are the continuing options.
-    Only e_{i,t} carries a gradient. Row t = 0 (no option runs before the start) is meaningless."""
-    n_options = out.p_c.shape[-1]
-    explained = component[:, :n_options].transpose(1, 2).exp().detach()
-    previous = torch.cat([out.p_c[:1], out.p_c[:-1]]).detach()
-    return (previous * out.option_end * explained).sum(-1)
-
-
-def option_switches(p_c: Tensor) -> Tensor:
-    """0.5 ||p^c_t - p^c_{t-1}||_1 [T, B] of time-major p^c [T, B, N] (`OCNConfig.switch_cost`): the
-    probability mass that moves to another option at step t. Row t = 0 (the first choice) is 0."""
-    change = 0.5 * (p_c[1:] - p_c[:-1]).abs().sum(-1)
-    return torch.cat([torch.zeros_like(change[:1]), change])
-
-
-def usage_imbalance(p_c: Tensor, mask: Tensor, options: int = 0, exact: bool = False) -> Tensor:
-    """KL(u || uniform) of the options' share u = the mean of p^c [T, B, N] (or of another per-frame
-    use of the options, `OCNConfig.usage_balance_source`) over real frames mask [B, T]:
-    0 when every option takes as many frames as the others, log N when one takes them all. With
-    `options` K < N, max(0, KL - ln(N / K)) = max(0, ln K - H(u)): 0 while u spreads over at least K
-    options' worth of entropy (`OCNConfig.usage_balance_options`); `exact` charges |ln K - H(u)|, usage
-    spread wider than K options' worth too (`OCNConfig.usage_balance_exact`)."""
+def usage_imbalance(p_c: Tensor, mask: Tensor) -> Tensor:
+    """KL(u || uniform) of the options' share u, the mean of p^c [T, B, N] over the real frames mask [B, T]
+    of the whole (distributed) batch: 0 when every option takes as many frames as the others, log N
+    when one takes them all."""
     weights = mask.transpose(0, 1).unsqueeze(-1).to(p_c.dtype)
-    share = (p_c * weights).sum((0, 1)) / weights.sum().clamp_min(1.0)
-    n_options = p_c.shape[-1]
-    kl = (share * torch.log(share.clamp_min(1e-12) * n_options)).sum()
-    if 0 < options < n_options:
-        excess = kl - math.log(n_options / options)
-        return excess.abs() if exact else excess.clamp_min(0.0)
-    return kl
-
-
-def option_usage(config: OCNConfig, out: StepOutput, component: Tensor) -> Tensor:
-    """Each option's use of each frame [T, B, N] as the usage balance counts it (`OCNConfig.usage_balance_source`),
-    from time-major outputs and `_component_log_prob`'s log p_k(a_t)."""
-    if config.usage_balance_source == "posterior":
-        return option_responsibilities(out.weights, component)
-    if config.usage_balance_source == "untempered":
-        return torch.softmax(config.temperature * torch.log(out.p_c.clamp_min(torch.finfo(out.p_c.dtype).tiny)), -1)
-    return out.p_c
+    share = global_sum((p_c * weights).sum((0, 1))) / global_sum(weights.sum()).clamp_min(1.0)
+    return (share * torch.log(share.clamp_min(1e-12) * p_c.shape[-1])).sum()
 
 
 class OCNPolicy(SequencePolicy, PreTrainedPolicy):
@@ -109,14 +74,9 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             hidden_size=config.hidden_size,
             mlp_hidden_size=config.mlp_hidden_size,
             mlp_depth=config.mlp_depth,
-            option_mlp=config.option_mlp,
-            affine_options=config.affine_options,
             n_params=self.head.n_params,
             temperature=config.temperature,
             skill_length=config.fixed_skill_length,
-            option_memory=config.option_memory,
-            forced_restart_rate=config.forced_restart_rate,
-            initial_state_std=config.initial_state_std,
             options=self._latent_options() if config.decoder_latents else None,
         )
         self.reset()
@@ -133,13 +93,23 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             hidden_size=config.hidden_size,
         )
 
-    def get_optim_params(self) -> list[dict[str, Any]]:
-        """Two parameter groups: the controller (with its per-task initial states) and the rest."""
-        controller = [self.core.controller_init, *self.core.controller.parameters()]
-        chosen = {id(p) for p in controller}
-        rest = [p for p in self.parameters() if id(p) not in chosen]
-        scaled = self.config.optimizer_lr * self.config.controller_lr_scale
-        return [{"params": rest}, {"params": controller, "lr": scaled}]
+    def get_optim_params(self) -> list[Tensor]:
+        """One group: every part trains at the recipe's rate."""
+        return list(self.parameters())
+
+    def in_final_phase(self) -> bool:
+        """Whether this training step is in the recipe's final phase (`Recipe.final_fraction`), read from
+        the run's training clock (`policies.schedules`), on which it first sets the recipe's phases."""
+        terms = self.config.recipe_terms
+        if not self.training or not terms.final_fraction:
+            return False
+        clock = clock_of(self.core.controller_init)
+        if clock is None:
+            raise ValueError(f"The {self.config.recipe} recipe ends with a phase over the last part of the run's "
+                             "steps, which the policy reads from its scheduler preset: train with lerobot-train's "
+                             "policy presets (the default), or build config.get_scheduler_preset() for the optimizer.")
+        clock.set_final_phase(terms.final_fraction, terms.final_lr_scale)
+        return clock.in_final_phase
 
     def reset(self) -> None:
         """Forget the recurrent state: the next `select_action` is t = 1 of new episodes."""
@@ -179,51 +149,36 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         return mixture_log_prob(out.weights, component).transpose(0, 1)
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
-        """NLL of the mixed action distribution: mean over each window's real frames, then over windows;
-        with `taught_options`, `labelled_forward`'s loss on the labels of the batch's packed view."""
-        mask, state, action = training_windows(self.config, batch)
-        if self.config.taught_options:
-            return self._taught_forward(batch, mask, state, action)
-        out = self._unroll(state, batch["task"], mask)
+        """The recipe's loss (`Recipe`) on the batch's whole episodes: the NLL of the mixed action
+        distribution, a mean over each episode's real frames and then over episodes, plus the recipe's
+        terms; in the final phase, the settling cost too (or, after taught options, the paper's loss)."""
+        mask, state, action, tasks = self.training_windows(batch)
+        terms, final = self.config.recipe_terms, self.in_final_phase()
+        if terms.taught and not final:
+            return self._taught_forward(batch, mask, state, action, tasks)
+        out = self._unroll(state, tasks, mask)
+        own_terminations = self.config.hierarchy == "ocn"
         penalties = {}
-        if self.config.termination_cost:
-            penalties["termination_penalty"] = (self.config.termination_cost, termination_penalty(self.config, out.end))
+        if final and terms.settle_termination_cost and own_terminations:
+            penalties["settle_penalty"] = (terms.settle_termination_cost, settle_penalty(out.end))
         component = self._component_log_prob(out, action)
-        if self.config.explained_termination_cost:
-            penalties["explained_terminations"] = (self.config.explained_termination_cost,
-                                                   explained_terminations(out, component))
-        if self.config.switch_cost:
-            penalties["option_switches"] = (self.config.switch_cost, option_switches(out.p_c))
         loss, stats = window_nll(self._action_log_prob(out, component), mask, reduction, {"mean_end": out.end},
-                                 penalties, packed=self.config.packed)
-        usage = option_usage(self.config, out, component)
-        imbalance = usage_imbalance(usage, mask, self.config.usage_balance_options, self.config.usage_balance_exact)
-        stats["usage_imbalance"] = imbalance.item()
-        if self.config.usage_balance:
-            loss = loss + self.config.usage_balance * imbalance
-        if self.config.expected_nll_weight:
+                                 penalties)
+        imbalance = usage_imbalance(out.p_c, mask)
+        stats |= {"usage_imbalance": imbalance.item(), "final_phase": float(final)}
+        if terms.usage_balance:
+            loss = loss + terms.usage_balance * imbalance
+        if terms.expected_nll_weight:
             expected_lp = expected_log_prob(out.weights, component).transpose(0, 1)
-            expected, expected_stats = window_nll(expected_lp, mask, reduction, {}, packed=self.config.packed)
+            expected, expected_stats = window_nll(expected_lp, mask, reduction, {})
             stats["expected_nll"] = expected_stats["nll"]
-            loss = loss + self.config.expected_nll_weight * expected
+            loss = loss + terms.expected_nll_weight * expected
         return loss, stats
 
-    def _taught_forward(self, batch: dict[str, Any], mask: Tensor, state: Tensor,
-                        action: Tensor) -> tuple[Tensor, dict[str, float]]:
-        """`labelled_forward` on the training windows of a labelled packed view's rows."""
-        if PACKED_OPTION not in batch:
-            raise ValueError(f"taught_options needs each frame's option label, the `{PACKED_OPTION}` column of a "
-                             "labelled packed view (python -m ocn_data.packed_view --option-labels FILE); this "
-                             "batch has none.")
-        option = batch[PACKED_OPTION].reshape(mask.shape[0], -1)[:, : mask.shape[1]].long()
-        if (option[mask] < 0).any():
-            raise ValueError("taught_options: an episode of the batch has frames without an option label; the "
-                             "label file must cover every training episode (train on the split it labelled).")
-        if int(option.max()) >= self.config.n_options:
-            raise ValueError(f"taught_options: a frame is labelled option {int(option.max())}, but the policy has "
-                             f"n_options = {self.config.n_options}.")
-        taught = {OBS_STATE: state, ACTION: action, "task": batch["task"]}
-        return self.labelled_forward(taught, option.masked_fill(~mask, -1), self.config.taught_termination_weight)
+    def _taught_forward(self, batch: dict[str, Any], mask: Tensor, state: Tensor, action: Tensor,
+                        tasks: list[str]) -> tuple[Tensor, dict[str, float]]:
+        """`labelled_forward` on the batch's episodes with their option labels (the taught recipe)."""
+        raise NotImplementedError
 
     def labelled_forward(
         self, batch: dict[str, Any], option: Tensor, termination_weight: float = 1.0

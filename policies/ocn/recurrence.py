@@ -125,10 +125,9 @@ def _mix(end: Tensor, done: Tensor, not_done: Tensor) -> Tensor:
     return torch.lerp(not_done, done, end)
 
 
-def _initial_states(rows: int, size: int, std: float) -> nn.Parameter:
-    """Learned initial states [rows, size]: zeros, or N(0, std^2) draws (zeros draw no random
-    numbers, so a std of 0 leaves every later initialisation as it was)."""
-    return nn.Parameter(torch.randn(rows, size) * std if std > 0 else torch.zeros(rows, size))
+def _initial_states(rows: int, size: int) -> nn.Parameter:
+    """Learned initial states [rows, size], starting at zero."""
+    return nn.Parameter(torch.zeros(rows, size))
 
 
 class OCNCore(nn.Module):
@@ -137,14 +136,8 @@ class OCNCore(nn.Module):
     `skill_length` L fixes how long every option runs (see `schedule`): 1 for the MoE baseline, where
     every step is then a start, L for HIL; None (OCN) leaves termination to the options. `options`
     replaces the option cells by another pool with their interface (`n_modules`, `project`, `step`),
-    such as the frozen compILE decoders of `latent_options`. Without `option_memory` an option's
-    every step starts from its learned initial state, so its continuing and restarted outputs agree.
-    `forced_restart_rate` p: in training, each row's soft step takes eq. 17's "done" branch with
-    probability p whatever the options' terminations say (see `_forced_restarts`).
-    The learned initial states (per task for the controller, per option) start at 0, or drawn from
-    N(0, `initial_state_std`^2) so that tasks pick different options from the first update.
-    `option_mlp` (width, depth) sizes the option cells' MLP apart from the controller's (None: the same), and
-    `affine_options` drops its tanh (`StackedCell`'s `affine`).
+    such as the frozen compILE decoders of `latent_options`. The learned initial states (per task for
+    the controller, per option) start at 0.
     """
 
     def __init__(
@@ -158,12 +151,7 @@ class OCNCore(nn.Module):
         n_params: int,
         temperature: float,
         skill_length: int | None = None,
-        option_memory: bool = True,
-        forced_restart_rate: float = 0.0,
-        initial_state_std: float = 0.0,
         options: nn.Module | None = None,
-        option_mlp: tuple[int, int] | None = None,
-        affine_options: bool = False,
     ) -> None:
         super().__init__()
         if skill_length is not None and skill_length < 1:
@@ -173,17 +161,14 @@ class OCNCore(nn.Module):
         self.n_options = n_options
         self.temperature = temperature
         self.skill_length = skill_length
-        self.option_memory = option_memory
-        self.forced_restart_rate = forced_restart_rate
         self.controller = StackedCell(
             1, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_options, with_end=False
         )
         self.options = options if options is not None else StackedCell(
-            n_options, obs_dim, hidden_size, *(option_mlp or (mlp_hidden_size, mlp_depth)), n_out=n_params,
-            affine=affine_options,
+            n_options, obs_dim, hidden_size, mlp_hidden_size, mlp_depth, n_out=n_params
         )
-        self.controller_init = _initial_states(n_tasks, hidden_size, initial_state_std)
-        self.option_init = _initial_states(n_options, hidden_size, initial_state_std)
+        self.controller_init = _initial_states(n_tasks, hidden_size)
+        self.option_init = _initial_states(n_options, hidden_size)
 
     def initial_state(self, task_index: Tensor) -> OCNState:
         """State before t = 1: h^c_{tau,0} per row's task, no steps taken; p^c and h^o are unused
@@ -260,19 +245,8 @@ class OCNCore(nn.Module):
         self, x_options: Tensor, option_h: Tensor, restarted: CellOutput, never: bool = False
     ) -> CellOutput:
         """The options' "not done" step from their own states h^o, or the restarted step itself where
-        options do not carry a state (`option_memory` off) or `never` continue."""
-        return restarted if never or not self.option_memory else self.options.step(x_options, option_h)
-
-    def _forced_restarts(self, forced: Tensor) -> Tensor:
-        """Rows [B] whose e_t is 1 this step: `forced`, plus in training each other row with probability
-        `forced_restart_rate`. At such a step the controller chooses again (from its running state)
-        and the options restart from their learned initial states in the middle of a subtask, so an
-        option pays off only if it carries its skill itself, and the controller only if it knows which
-        skill the moment needs: the alternative, one option that reads its target off its own past
-        motion and never terminates, loses at every forced restart."""
-        if not self.training or self.forced_restart_rate == 0.0:
-            return forced
-        return forced | (torch.rand(forced.shape, device=forced.device) < self.forced_restart_rate)
+        options `never` continue."""
+        return restarted if never else self.options.step(x_options, option_h)
 
     def project(self, x: Tensor) -> Projected:
         """Observation parts for x [..., B, obs_dim], computed once per window outside the time loop."""
@@ -298,7 +272,6 @@ class OCNCore(nn.Module):
         e_t = 1 (as wherever `schedule` forces it). `restarted`: this step's `restarts`, where the caller
         computed them ahead (None: computed here)."""
         forced, steps = self.schedule(start, state.steps)
-        forced = self._forced_restarts(forced)
         restarted = self.restarts(x.options) if restarted is None else restarted
         continued = self._continued(x.options, state.option_h, restarted)
         ctrl = self.controller.step(x.controller, state.controller_h.unsqueeze(0))

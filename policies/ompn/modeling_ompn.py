@@ -18,7 +18,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn.encoders import make_encoder
 from policies.ocn.heads import make_action_head
-from policies.sequence import SequencePolicy, frame_mask, training_windows, window_nll
+from policies.sequence import SequencePolicy, frame_mask, window_nll
 
 from .configuration_ompn import OMPNConfig
 from .memory import MemoryOutput, OrderedMemory
@@ -127,11 +127,10 @@ class OMPNPolicy(SequencePolicy, PreTrainedPolicy):
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """NLL of the actions: mean over each window's real frames, then over windows."""
-        mask, state, action = training_windows(self.config, batch)
-        out = self._unroll(state, mask, batch["task"])
+        mask, state, action, tasks = self.training_windows(batch)
+        out = self._unroll(state, mask, tasks)
         depth = expected_depth(out.expansion)
-        return window_nll(self._action_log_prob(out.params, action), mask, reduction, {"mean_depth": depth},
-                          packed=self.config.packed)
+        return window_nll(self._action_log_prob(out.params, action), mask, reduction, {"mean_depth": depth})
 
     @torch.no_grad()
     def parse(self, batch: dict[str, Any]) -> dict[str, Tensor]:
