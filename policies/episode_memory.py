@@ -68,7 +68,7 @@ class EpisodeMemory:
             in_split = np.zeros(size, dtype=bool)
             in_split[lo:min(hi, size)] = True
             trainable &= in_split
-        frames = {key: torch.from_numpy(_column_numpy(table[key])) for key in keys}
+        frames = {key: torch.from_numpy(_column_numpy(table[key]).copy()) for key in keys}
         return cls(frames, torch.from_numpy(start), torch.from_numpy(length), torch.from_numpy(task_index),
                    torch.from_numpy(trainable), split)
 

@@ -12,7 +12,7 @@ as it is, which is how probes and tests feed chosen episodes.
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import torch
 from torch import Tensor
@@ -255,6 +255,17 @@ def window_nll(
     return batch_mean(per_episode, frames), stats
 
 
+class Episodes(NamedTuple):
+    """A training batch of whole episodes from t = 1: real frames `mask` [B, T], `state` [B, T, S], `action`
+    [B, T, ...], their `tasks`, and any further per-frame columns the policy keeps in memory ([B, T])."""
+
+    mask: Tensor
+    state: Tensor
+    action: Tensor
+    tasks: list[str]
+    columns: dict[str, Tensor]
+
+
 class SequencePolicy:
     """Mixin of the LeRobot policies over whole episodes, placed before `PreTrainedPolicy` in the
     bases: LeRobot's constructor, the episodes in memory, the task table, and `select_action` from
@@ -290,13 +301,13 @@ class SequencePolicy:
                      f"{dataset_meta.root} in memory and trains on the {memory.n_trainable} of split "
                      f"'{memory.split}'; frames LeRobot samples from other episodes are left out of the loss.")
 
-    def training_windows(self, batch: dict[str, Any]) -> tuple[Tensor, Tensor, Tensor, list[str]]:
-        """(mask [B, T], state [B, T, S], action [B, T, ...], tasks [B]) of whole episodes from t = 1: the
-        episodes of LeRobot's sampled frames, from memory, or a batch that already holds episodes."""
+    def training_windows(self, batch: dict[str, Any]) -> Episodes:
+        """The whole episodes of a batch, from t = 1: those of LeRobot's sampled frames, from memory, or the
+        batch itself where it already holds episodes."""
         if batch[OBS_STATE].dim() == 3:
             tasks = batch["task"]
-            return frame_mask(batch), batch[OBS_STATE], batch[ACTION], [tasks] * len(batch[OBS_STATE]) \
-                if isinstance(tasks, str) else list(tasks)
+            tasks = [tasks] * len(batch[OBS_STATE]) if isinstance(tasks, str) else list(tasks)
+            return Episodes(frame_mask(batch), batch[OBS_STATE], batch[ACTION], tasks, {})
         if self._episodes is None or "episode_index" not in batch:
             raise ValueError(f"{self.config.model_name} trains on whole episodes: build it from the dataset it trains "
                              "on (lerobot-train does) so that it holds them, or give it a batch of episodes.")
@@ -313,10 +324,11 @@ class SequencePolicy:
         mask, frames, task_index = self._episodes.batch(episode_index)
         if self.training:
             mask &= self._episodes.trainable[episode_index][:, None]
-        action = frames[ACTION]
+        action = frames.pop(ACTION)
         if action.shape[-1] == 1 and self.config.action_type == "discrete":
             action = action.squeeze(-1)
-        return mask, frames[OBS_STATE], action, [self.config.tasks[int(i)] for i in task_index]
+        tasks = [self.config.tasks[int(i)] for i in task_index]
+        return Episodes(mask, frames.pop(OBS_STATE), action, tasks, frames)
 
     def task_index(self, tasks: Sequence[str] | str | None, batch_size: int) -> Tensor:
         """Map a batch's task strings (one string: the whole batch) to rows of the per-task parameters."""

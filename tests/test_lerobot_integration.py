@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -54,8 +55,9 @@ def demos(tmp_path_factory) -> Path:
 
 
 def train(root: Path, base: Path, *extra: str) -> Path:
-    """A few steps of `lerobot-train --policy.type=ocn` on `root`; returns the final pretrained_model folder."""
-    run_cli(
+    """A few steps of `lerobot-train --policy.type=ocn` on `root`, logging every step into `base/train.log`;
+    returns the final pretrained_model folder."""
+    proc = run_cli(
         "lerobot-train",
         "--policy.type=ocn",
         f"--dataset.repo_id={REPO_ID}",
@@ -69,11 +71,12 @@ def train(root: Path, base: Path, *extra: str) -> Path:
         "--num_workers=0",
         "--policy.hidden_size=16",
         "--policy.mlp_hidden_size=16",
-        "--policy.window_size=24",
+        "--log_freq=1",
         f"--output_dir={base / 'train'}",
         *extra,
         cwd=base,
     )
+    (base / "train.log").write_text(proc.stdout + proc.stderr)
     return base / "train" / "checkpoints" / f"{STEPS:06d}" / "pretrained_model"
 
 
@@ -102,7 +105,9 @@ def test_train_checkpoint_reloads_identically(trained):
     assert (checkpoint / "model.safetensors").is_file() and (checkpoint / "config.json").is_file()
     first, second = OCNPolicy.from_pretrained(checkpoint), OCNPolicy.from_pretrained(checkpoint)
     assert first.config.tasks == second.config.tasks == [AC]
-    assert first.config.hidden_size == 16 and first.config.window_size == 24
+    longest = max(int(length) for length in LeRobotDataset(REPO_ID, root=root).meta.episodes["length"])
+    assert first.config.hidden_size == 16 and first.config.window_size == longest
+    assert (first.config.recipe, first.config.obs_encoder, first.config.n_actions) == ("craft", "craft", 5)
 
     batch = episode_batch(root, 0)
     assert batch["task"] == [AC]
@@ -127,14 +132,41 @@ def test_moe_trains_through_lerobot_train_and_reloads_as_moe(demos, tmp_path):
     assert torch.isfinite(loss) and stats["mean_end"] == 1.0
 
 
-def test_lerobot_train_on_the_packed_view_saves_a_policy_of_the_recorded_features(demos, tmp_path):
-    from ocn_data.packed_view import packed_view
+def test_plain_lerobot_train_trains_the_craft_recipe_and_settles_in_its_final_steps(trained):
+    log = (trained[0].parent / "train.log").read_text()
+    phases = [float(value) for value in re.findall(r"final_phase:([0-9.]+)", log)]
+    # 4 steps: the final sixth, rounded, is the last step, which adds the settling cost.
+    assert phases == [0.0, 0.0, 0.0, 1.0]
+    assert "settle_penalty" in log.splitlines()[[i for i, line in enumerate(log.splitlines())
+                                                   if "final_phase:1.000" in line][0]]
+    assert "Effective batch size: 4 x 1 = 4" in log
 
-    checkpoint = train(packed_view(demos, REPO_ID, 24), tmp_path, "--policy.window_start=packed")
-    policy = OCNPolicy.from_pretrained(checkpoint)
-    assert policy.config.window_start == "packed" and set(policy.config.input_features) == {OBS_STATE}
-    batch = episode_batch(demos, 0)
-    assert policy.parse(batch)["p_c"].shape == (1, batch[OBS_STATE].shape[1], policy.config.n_options)
+
+def test_the_policy_trains_on_the_whole_episodes_of_the_frames_lerobot_samples(demos):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy
+    from policies.ocn import OCNConfig
+
+    meta = LeRobotDatasetMetadata(REPO_ID, root=demos)
+    policy = make_policy(OCNConfig(device="cpu", hidden_size=8, mlp_hidden_size=8), ds_meta=meta)
+    train_split, val_split = split_episodes(demos, "train"), split_episodes(demos, "val")
+    frames = LeRobotDataset(REPO_ID, root=demos)  # single frames: the policy asks for no windows
+    picked = [frames[int(meta.episodes["dataset_from_index"][episode]) + 2] for episode in (train_split[1], 0)]
+    batch = torch.utils.data.default_collate(picked)
+    assert batch[OBS_STATE].shape == (2, 81)
+    policy.eval()  # every episode counts outside training
+    mask, state, action, tasks, _ = policy.training_windows(batch)
+    for row, episode in enumerate((train_split[1], 0)):
+        whole = episode_batch(demos, episode)
+        length = whole[OBS_STATE].shape[1]
+        assert mask[row].sum() == length and tasks[row] == whole["task"][0]
+        torch.testing.assert_close(state[row, :length].float(), whole[OBS_STATE][0])
+        torch.testing.assert_close(action[row, :length].float(), whole[ACTION][0].reshape(-1))
+    policy.train()
+    held_out = torch.utils.data.default_collate(
+        [frames[int(meta.episodes["dataset_from_index"][val_split[0]])]] * 2 + picked[:1])
+    mask, *_ = policy.training_windows(held_out)
+    assert mask.shape[0] == 1  # the dataset's val split leaves the training batch
 
 
 def test_ocn_eval_scores_a_hil_checkpoint(trained, tmp_path):
@@ -311,8 +343,9 @@ def test_ocn_eval_scores_the_checkpoint_on_the_validation_split(trained, tmp_pat
     assert table["subtasks"] == ["A", "C"] and np.array(table["table"]).shape == (3, 2)
     assert list(result["success_rate"]) == [AC]
     assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
-    # action_nll, from the parse, is the frame-weighted mean of the training loss's per-window NLL.
+    # action_nll, from the parse, is the frame-weighted mean of the paper's loss per episode (the NLL alone).
     policy, preprocessor, _ = load_policy(checkpoint)
+    policy.config.recipe = "paper"
     episodes = load_episodes(root, split_episodes(root, "val"))
     batch = preprocessor({
         OBS_STATE: torch.from_numpy(episodes.state).float(), ACTION: torch.from_numpy(episodes.action).float(),

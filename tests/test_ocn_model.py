@@ -14,12 +14,10 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
-from policies.ocn.modeling_ocn import (explained_terminations, option_switches, option_usage, termination_penalty,
-                                       usage_imbalance)
-from policies.ocn.heads import (DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob,
-                                option_responsibilities, sample_index)
+from policies.ocn.configuration_ocn import RECIPE_TABLE
+from policies.ocn.heads import DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, sample_index
+from policies.ocn.modeling_ocn import settle_penalty, usage_imbalance
 from policies.ocn.recurrence import OCNState, StepOutput
-from policies.sequence import training_windows
 
 torch.set_num_threads(1)
 
@@ -31,13 +29,13 @@ N_OPTIONS = 3
 def make_policy(action_type: str = "discrete", action_dim: int = 1, **overrides) -> OCNPolicy:
     settings = dict(
         device="cpu",
+        recipe="paper",
         obs_encoder="identity",
         action_type=action_type,
         n_actions=4,
         n_options=N_OPTIONS,
         hidden_size=8,
         mlp_hidden_size=12,
-        window_size=5,
         tasks=list(TASKS),
         input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (STATE_DIM,))},
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (action_dim,))},
@@ -93,34 +91,6 @@ def test_controller_cell_has_no_termination_head():
     cell = StackedCell(1, in_dim=7, hidden_size=5, mlp_hidden_size=6, mlp_depth=2, n_out=3, with_end=False)
     out = cell(torch.randn(2, 7), torch.zeros(1, 2, 5))
     assert out.end is None and cell.w_out.shape == (1, 6, 3 + 5)
-
-
-def test_an_affine_cell_maps_its_input_affinely():
-    torch.manual_seed(0)
-    cell = StackedCell(3, in_dim=7, hidden_size=5, mlp_hidden_size=6, mlp_depth=2, n_out=4, affine=True)
-    x1, x2, h = torch.randn(2, 7), torch.randn(2, 7), torch.randn(3, 2, 5)
-    mixed = cell(0.3 * x1 + 0.7 * x2, h)
-    one, two = cell(x1, h), cell(x2, h)
-    torch.testing.assert_close(mixed.logits, 0.3 * one.logits + 0.7 * two.logits)
-    logit = torch.logit  # the termination is a sigmoid of an affine map
-    torch.testing.assert_close(logit(mixed.end), 0.3 * logit(one.end) + 0.7 * logit(two.end), rtol=1e-4, atol=1e-4)
-    # The tanh cell of the same weights is not affine.
-    tanh = StackedCell(3, in_dim=7, hidden_size=5, mlp_hidden_size=6, mlp_depth=2, n_out=4)
-    tanh.load_state_dict(cell.state_dict())
-    assert not torch.allclose(tanh(0.3 * x1 + 0.7 * x2, h).logits, 0.3 * tanh(x1, h).logits + 0.7 * tanh(x2, h).logits)
-
-
-def test_options_take_their_own_mlp_size_and_the_controller_keeps_its_own():
-    policy = make_policy(option_mlp_hidden_size=4, option_mlp_depth=1, affine_options=True)
-    options, controller = policy.core.options, policy.core.controller
-    assert options.w_x.shape == (N_OPTIONS, STATE_DIM, 4) and len(options.w_mlp) == 0
-    assert options.activation(torch.tensor(3.0)) == 3.0
-    assert controller.w_x.shape == (1, STATE_DIM, 12) and len(controller.w_mlp) == 1
-    assert controller.activation is torch.tanh
-    loss, _ = policy(make_batch())
-    loss.backward()
-    with pytest.raises(ValueError, match="option_mlp_hidden_size and option_mlp_depth must be >= 0"):
-        make_policy(option_mlp_depth=-1)
 
 
 def test_looped_cells_give_the_same_loss_and_gradients():
@@ -191,178 +161,6 @@ def test_done_steps_controller_and_restarts_options():
     torch.testing.assert_close(out.weights, torch.cat([torch.zeros(2, N_OPTIONS), new_p_c], -1))
 
 
-def test_options_without_memory_step_from_their_initial_state_in_both_branches():
-    policy = make_policy(option_memory=False)
-    force_termination(policy, -1e4)  # "not done": with memory the options would continue from prev.option_h
-    core, prev, x = policy.core, _previous_state(), torch.randn(2, STATE_DIM)
-    _, out = core.step(prev, core.project(x), torch.zeros(2, dtype=torch.bool))
-    fresh = core.options(x, core.option_init.unsqueeze(1).expand(-1, 2, -1))
-    torch.testing.assert_close(out.params[:N_OPTIONS], fresh.logits)
-    torch.testing.assert_close(out.params[N_OPTIONS:], fresh.logits)
-    with_memory = make_policy()
-    force_termination(with_memory, -1e4)
-    _, remembered = with_memory.core.step(prev, with_memory.core.project(x), torch.zeros(2, dtype=torch.bool))
-    assert not torch.allclose(remembered.params[:N_OPTIONS], fresh.logits)
-    hard, _ = core.hard_step(core.initial_hard_state(torch.zeros(2, dtype=torch.long)), core.project(x),
-                             torch.ones(2, dtype=torch.bool), greedy=True)
-    _, step = core.hard_step(hard, core.project(x), torch.zeros(2, dtype=torch.bool), greedy=True)
-    torch.testing.assert_close(step.params, fresh.logits[hard.option, torch.arange(2)])
-
-
-def test_options_without_memory_still_train_their_heads_initial_states_and_the_controller():
-    policy = make_policy(option_memory=False, temperature=1.0)
-    loss, _ = policy(make_batch(batch=6, steps=5))
-    loss.backward()
-    core = policy.core
-    assert (core.options.w_out.grad.flatten(1).abs().sum(1) > 0).all()
-    assert (core.option_init.grad.abs().sum(1) > 0).all()
-    assert all(param.grad.abs().sum() > 0 for param in core.controller.parameters())
-
-
-def test_forced_restarts_take_the_done_branch_in_some_rows_in_training_and_in_none_in_eval():
-    policy = make_policy(forced_restart_rate=0.5)
-    force_termination(policy, -1e4)  # the options never end by themselves: e_t is 0 unless forced
-    core, prev, x = policy.core, _previous_state(batch=400), torch.randn(400, STATE_DIM)
-    no_start = torch.zeros(400, dtype=torch.bool)
-    torch.manual_seed(5)
-    state, out = core.step(prev, core.project(x), no_start)
-    restarted_rows = out.end == 1.0
-    assert ((out.end == 0.0) | restarted_rows).all()
-    assert 0.4 < restarted_rows.float().mean() < 0.6
-    fresh = core.options(x, core.option_init.unsqueeze(1).expand(-1, 400, -1))
-    torch.testing.assert_close(state.option_h[:, restarted_rows], fresh.hidden[:, restarted_rows])
-    continued = core.options(x, prev.option_h)
-    torch.testing.assert_close(state.option_h[:, ~restarted_rows], continued.hidden[:, ~restarted_rows])
-    policy.eval()
-    _, out = core.step(prev, core.project(x), no_start)
-    assert not out.end.any()
-
-
-def test_forced_restart_rate_is_a_probability_for_ocn_only():
-    with pytest.raises(ValueError, match=r"forced_restart_rate must be in \[0, 1\), got 1.0"):
-        make_policy(forced_restart_rate=1.0)
-    with pytest.raises(ValueError, match="forced_restart_rate is for hierarchy='ocn'"):
-        make_policy(forced_restart_rate=0.1, hierarchy="hil")
-
-
-def termination_bias_grad_change(policy: OCNPolicy, plain_policy: OCNPolicy) -> torch.Tensor:
-    """What a loss term adds to the gradient on every option's termination bias: `policy`'s gradient
-    less that of `plain_policy` (the same weights and batch without the term), both after backward."""
-    return policy.core.options.b_out.grad[..., -1] - plain_policy.core.options.b_out.grad[..., -1]
-
-
-def test_termination_cost_adds_the_weighted_mean_termination_after_the_first_step_and_pushes_it_down():
-    batch = make_batch(steps=5)
-    batch[f"{ACTION}_is_pad"][0, 3:] = True  # window 0 has 3 real frames, so 2 after its first
-    plain_policy = make_policy()
-    plain_loss, plain = plain_policy.forward(batch)
-    plain_loss.backward()
-    policy = make_policy(termination_cost=0.5)
-    loss, stats = policy.forward(batch)
-    out = policy._unroll(batch[OBS_STATE], batch["task"])
-    end = out.end[1:].transpose(0, 1).detach()
-    per_window = torch.stack([end[0, :2].mean()] + [row.mean() for row in end[1:]])
-    torch.testing.assert_close(loss, plain_loss + 0.5 * per_window.mean())
-    assert stats["nll"] == pytest.approx(plain["nll"]) and stats["mean_end"] == pytest.approx(plain["mean_end"])
-    loss.backward()
-    # The cost's own gradient on each option's termination bias is positive: descent lowers every e_{i,t}.
-    cost_grad = termination_bias_grad_change(policy, plain_policy)
-    assert (cost_grad > 0).all()
-    with pytest.raises(ValueError, match="termination_cost must be >= 0, got -1.0"):
-        make_policy(termination_cost=-1.0)
-    with pytest.raises(ValueError, match="`termination_penalty` must be one of"):
-        make_policy(termination_penalty="square")
-    with pytest.raises(ValueError, match="termination_cost is for hierarchy='ocn'"):
-        make_policy(termination_cost=0.1, hierarchy="moe")
-
-
-def test_explained_terminations_weigh_each_ending_option_by_its_own_probability_of_the_action():
-    # T = 2, B = 1, N = 3: p^c_1, then at t = 2 each option's termination and the continuing options'
-    # probabilities of the demonstrated action (the restarted components play no part).
-    p_c = torch.tensor([[[0.5, 0.3, 0.2]], [[0.2, 0.2, 0.6]]], requires_grad=True)
-    option_end = torch.tensor([[[1.0, 1.0, 1.0]], [[0.8, 0.1, 0.5]]], requires_grad=True)
-    component = torch.log(torch.tensor([[0.5] * 6, [0.9, 0.2, 0.4, 0.99, 0.99, 0.99]])).unsqueeze(-1).requires_grad_()
-    out = StepOutput(torch.ones(2, 1, 6), torch.zeros(6, 2, 1, 4), p_c, torch.ones(2, 1), option_end)
-    value = explained_terminations(out, component)
-    assert value.shape == (2, 1)
-    assert value[1, 0].item() == pytest.approx(0.5 * 0.8 * 0.9 + 0.3 * 0.1 * 0.2 + 0.2 * 0.5 * 0.4)
-    value[1].sum().backward()
-    # Only the terminations move: d/de_i = p^c_{1,i} p_i(a_2); p^c and the action probabilities get nothing.
-    torch.testing.assert_close(option_end.grad[1, 0], torch.tensor([0.5 * 0.9, 0.3 * 0.2, 0.2 * 0.4]))
-    assert p_c.grad is None and component.grad is None
-
-
-def test_explained_termination_cost_joins_the_loss_and_lowers_the_terminations():
-    batch = make_batch(steps=5)  # no padding: every window has 4 frames after its first
-    plain_policy = make_policy()
-    plain_loss, plain = plain_policy.forward(batch)
-    plain_loss.backward()
-    policy = make_policy(explained_termination_cost=2.0)
-    loss, stats = policy.forward(batch)
-    assert stats["nll"] == pytest.approx(plain["nll"]) and stats["explained_terminations"] > 0
-    torch.testing.assert_close(loss, plain_loss + 2.0 * torch.tensor(stats["explained_terminations"]))
-    loss.backward()
-    cost_grad = termination_bias_grad_change(policy, plain_policy)
-    assert (cost_grad > 0).all()
-    with pytest.raises(ValueError, match="explained_termination_cost must be >= 0, got -1.0"):
-        make_policy(explained_termination_cost=-1.0)
-    with pytest.raises(ValueError, match="explained_termination_cost is for hierarchy='ocn'"):
-        make_policy(explained_termination_cost=0.1, hierarchy="hil")
-
-
-def test_option_switches_are_the_mass_that_changes_option_and_charge_no_reselection():
-    # T = 3, B = 2, N = 3. Row 0 reselects the same distribution at every step (however often its options
-    # ended, nothing changes option); row 1 moves 0.6, then all of its mass, to other options.
-    p_c = torch.tensor([[[0.2, 0.3, 0.5], [1.0, 0.0, 0.0]],
-                        [[0.2, 0.3, 0.5], [0.4, 0.6, 0.0]],
-                        [[0.2, 0.3, 0.5], [0.0, 0.0, 1.0]]], requires_grad=True)
-    value = option_switches(p_c)
-    torch.testing.assert_close(value, torch.tensor([[0.0, 0.0], [0.0, 0.6], [0.0, 1.0]]))
-    value[2, 1].backward()
-    # Descent moves p^c_t back toward p^c_{t-1}: the gradient is +1/2 where p^c_t grew, -1/2 where it shrank.
-    torch.testing.assert_close(p_c.grad[2, 1], torch.tensor([-0.5, -0.5, 0.5]))
-    torch.testing.assert_close(p_c.grad[1, 1], torch.tensor([0.5, 0.5, -0.5]))
-
-
-def test_switch_cost_joins_the_loss_as_the_mean_switched_mass_after_the_first_frame():
-    batch = make_batch(steps=5)
-    batch[f"{ACTION}_is_pad"][0, 3:] = True  # window 0 has 3 real frames, so 2 after its first
-    plain_loss, plain = make_policy().forward(batch)
-    policy = make_policy(switch_cost=0.5)
-    loss, stats = policy.forward(batch)
-    out = policy._unroll(batch[OBS_STATE], batch["task"])
-    switched = option_switches(out.p_c)[1:].transpose(0, 1).detach()
-    assert switched.gt(0).all()  # the fresh controller's choices differ a little from step to step
-    per_window = torch.stack([switched[0, :2].mean()] + [row.mean() for row in switched[1:]])
-    torch.testing.assert_close(loss, plain_loss + 0.5 * per_window.mean())
-    assert stats["nll"] == pytest.approx(plain["nll"]) and stats["option_switches"] > 0
-    with pytest.raises(ValueError, match="switch_cost must be >= 0, got -1.0"):
-        make_policy(switch_cost=-1.0)
-    with pytest.raises(ValueError, match="switch_cost is for hierarchy='ocn'"):
-        make_policy(switch_cost=0.1, hierarchy="moe")
-
-
-def test_log_termination_penalty_charges_minus_log_one_minus_e_and_keeps_its_gradient_where_e_is_confident():
-    batch = make_batch(steps=5)
-    batch[f"{ACTION}_is_pad"][0, 3:] = True
-    plain_loss, plain = make_policy().forward(batch)
-    policy = make_policy(termination_cost=0.5, termination_penalty="log")
-    loss, stats = policy.forward(batch)
-    end = policy._unroll(batch[OBS_STATE], batch["task"]).end[1:].transpose(0, 1).detach()
-    penalty = -torch.log(1 - end)
-    per_window = torch.stack([penalty[0, :2].mean()] + [row.mean() for row in penalty[1:]])
-    torch.testing.assert_close(loss, plain_loss + 0.5 * per_window.mean())
-    assert stats["mean_end"] == pytest.approx(plain["mean_end"])  # still the mean e_t, whatever the penalty
-    pooled = (penalty[0, :2].sum() + penalty[1:].sum()) / (2 + penalty[1:].numel())  # over real frames t > 1
-    assert stats["termination_penalty"] == pytest.approx(pooled.item())
-    # d/dlogit of the penalty is e (log) against e (1 - e) (linear): at e = 0.99 the log form pulls 100x harder.
-    logit = torch.tensor(4.59512, requires_grad=True)  # sigmoid = 0.99
-    for kind, expected in (("linear", 0.99 * 0.01), ("log", 0.99)):
-        (grad,) = torch.autograd.grad(termination_penalty(make_policy(termination_penalty=kind).config,
-                                                          torch.sigmoid(logit)), logit)
-        assert grad.item() == pytest.approx(expected, rel=1e-3)
-
-
 def test_usage_imbalance_is_the_kl_of_the_real_frames_option_share_to_uniform():
     p_c = torch.tensor([[[1.0, 0.0]], [[0.5, 0.5]], [[0.0, 1.0]]])  # [T=3, B=1, N=2]
     mask = torch.tensor([[True, True, False]])  # the last frame is padding
@@ -372,102 +170,6 @@ def test_usage_imbalance_is_the_kl_of_the_real_frames_option_share_to_uniform():
                            torch.ones(2, 4, dtype=torch.bool)).item() == pytest.approx(0.0)
     one_option = torch.nn.functional.one_hot(torch.zeros(4, 2, dtype=torch.long), 3).float()
     assert usage_imbalance(one_option, torch.ones(2, 4, dtype=torch.bool)).item() == pytest.approx(math.log(3))
-
-
-def test_usage_imbalance_over_k_options_lets_the_spare_ones_idle():
-    mask = torch.ones(1, 6, dtype=torch.bool)
-    # Six options, the frames on three of them equally: free under K = 3, charged under K = 6.
-    three = torch.nn.functional.one_hot(torch.tensor([[0], [1], [2], [0], [1], [2]]), 6).float()
-    assert usage_imbalance(three, mask, options=3).item() == 0.0
-    assert usage_imbalance(three, mask, options=6).item() == pytest.approx(math.log(2))
-    assert usage_imbalance(three, mask, options=2).item() == 0.0
-    # All on one option: ln K - H(u) = ln 3; K = 0 and K = N are the KL to the uniform.
-    one = torch.nn.functional.one_hot(torch.zeros(6, 1, dtype=torch.long), 6).float()
-    assert usage_imbalance(one, mask, options=3).item() == pytest.approx(math.log(3))
-    assert (usage_imbalance(one, mask, options=0).item() == usage_imbalance(one, mask, options=6).item()
-            == pytest.approx(math.log(6)))
-    # Two options' worth of entropy is below three's: charged the difference.
-    two = torch.nn.functional.one_hot(torch.tensor([[0], [1], [0], [1], [0], [1]]), 6).float()
-    assert usage_imbalance(two, mask, options=3).item() == pytest.approx(math.log(3) - math.log(2))
-    # Exact: usage over more than K options' worth is charged too, and its gradient moves share to the commoner options.
-    assert usage_imbalance(two, mask, options=3, exact=True).item() == pytest.approx(math.log(3) - math.log(2))
-    assert usage_imbalance(three, mask, options=2, exact=True).item() == pytest.approx(math.log(3) - math.log(2))
-    assert usage_imbalance(three, mask, options=3, exact=True).item() == pytest.approx(0.0, abs=1e-6)
-    logits = torch.tensor([0.4, 0.3, 0.2, 0.1, 0.05, 0.05]).log().repeat(6, 1, 1).requires_grad_()
-    usage_imbalance(torch.softmax(logits, -1), mask, options=2, exact=True).backward()
-    step = -logits.grad.sum((0, 1))  # descent on the logits: up for the two commonest options, down for the rest
-    assert (step[:2] > 0).all() and (step[2:] < 0).all()
-    with pytest.raises(ValueError, match=r"usage_balance_options must be in \[0, n_options = 3\], got 4"):
-        make_policy(usage_balance_options=4)
-    with pytest.raises(ValueError, match="usage_balance_exact needs 0 < usage_balance_options < n_options = 3, got "
-                                         "usage_balance_options = 0"):
-        make_policy(usage_balance_exact=True)
-
-
-def test_option_responsibilities_are_each_options_share_of_the_mixed_likelihood():
-    # B = 1, N = 2: components (continuing 0, continuing 1, restarted 0, restarted 1).
-    weights = torch.tensor([[0.5, 0.1, 0.1, 0.3]])
-    likelihood = torch.tensor([0.2, 0.9, 0.6, 0.05])
-    mixed = (weights[0] * likelihood).sum()
-    expected = torch.tensor([[(0.5 * 0.2 + 0.1 * 0.6) / mixed, (0.1 * 0.9 + 0.3 * 0.05) / mixed]])
-    shares = option_responsibilities(weights, likelihood.log().unsqueeze(-1))
-    torch.testing.assert_close(shares, expected)
-    # A component of weight 0 takes no share, however well it predicts.
-    shares = option_responsibilities(torch.tensor([[0.0, 0.5, 0.0, 0.5]]), torch.zeros(4, 1))
-    torch.testing.assert_close(shares, torch.tensor([[0.0, 1.0]]))
-
-
-def test_posterior_usage_balance_counts_the_options_responsibilities_not_the_controllers_weights():
-    batch = make_batch(steps=5)
-    batch[f"{ACTION}_is_pad"][0, 3:] = True
-    policy, plain_policy = make_policy(usage_balance=1.0, usage_balance_source="posterior"), make_policy()
-    with torch.no_grad():  # option 0 predicts action 0 almost surely: where it is demonstrated, option 0 explains it
-        for sure in (policy, plain_policy):
-            sure.core.options.b_out[0, 0, :4] = torch.tensor([20.0, 0.0, 0.0, 0.0])
-    loss, stats = policy.forward(batch)
-    mask, state, action = training_windows(policy.config, batch)
-    out = policy._unroll(state, batch["task"], mask)
-    component = policy._component_log_prob(out, action)
-    shares = option_responsibilities(out.weights, component)
-    expected = usage_imbalance(shares, mask)
-    assert stats["usage_imbalance"] == pytest.approx(expected.item())
-    assert abs(expected.item() - usage_imbalance(out.p_c, mask).item()) > 0.01
-    torch.testing.assert_close(loss, plain_policy.forward(batch)[0] + expected)
-    with pytest.raises(ValueError, match=re.escape("`usage_balance_source` must be one of ('controller', 'posterior', "
-                                                   "'untempered'), got 'argmax'.")):
-        make_policy(usage_balance_source="argmax")
-
-
-def test_untempered_usage_is_the_controllers_choice_without_its_temperature():
-    policy = make_policy(temperature=10.0, usage_balance_source="untempered")
-    logits = torch.tensor([[[2.0, 1.0, 0.5]]])  # one frame's controller logits: p^c = softmax(logits / 10)
-    p_c = torch.softmax(logits / 10.0, -1)
-    decided = StepOutput(torch.zeros(1, 1, 6), torch.zeros(6, 1, 4), p_c, torch.ones(1, 1), torch.zeros(1, 1, 3))
-    torch.testing.assert_close(option_usage(policy.config, decided, torch.zeros(1, 6, 1)), torch.softmax(logits, -1))
-    policy.config.usage_balance_source = "controller"
-    torch.testing.assert_close(option_usage(policy.config, decided, torch.zeros(1, 6, 1)), p_c)
-
-
-def test_usage_balance_adds_the_weighted_imbalance_and_moves_the_controller_toward_the_rarer_options():
-    batch = make_batch(steps=5)
-    batch[f"{ACTION}_is_pad"][0, 3:] = True
-    plain_policy, policy = make_policy(), make_policy(usage_balance=2.0)
-    with torch.no_grad():  # tilt the controller toward option 0 in both policies alike
-        for tilted in (plain_policy, policy):
-            tilted.core.controller.b_out[0, 0, 0] += 5.0
-    plain_loss, plain = plain_policy.forward(batch)
-    plain_loss.backward()
-    loss, stats = policy.forward(batch)
-    assert stats["usage_imbalance"] == pytest.approx(plain["usage_imbalance"]) and stats["usage_imbalance"] > 0.01
-    torch.testing.assert_close(loss, plain_loss + 2.0 * stats["usage_imbalance"])
-    loss.backward()
-    # The term's own gradient on the controller's output bias: positive for the favoured option 0
-    # (descent lowers its logit), negative for the others.
-    grads = [p.core.controller.b_out.grad[0, 0, :N_OPTIONS] for p in (policy, plain_policy)]
-    balance_grad = grads[0] - grads[1]
-    assert balance_grad[0] > 0 and (balance_grad[1:] < 0).all()
-    with pytest.raises(ValueError, match="usage_balance must be >= 0, got -0.5"):
-        make_policy(usage_balance=-0.5)
 
 
 def test_expected_nll_charges_each_weighted_option_for_its_own_prediction():
@@ -489,36 +191,112 @@ def test_expected_nll_charges_each_weighted_option_for_its_own_prediction():
     assert expected_log_prob(out.weights, component).item() == pytest.approx(expected, rel=1e-5)
 
 
-def test_expected_nll_weight_adds_the_weighted_expected_nll_over_real_frames():
+# ---- the recipes -----------------------------------------------------------------------------------
+
+
+def train_clock(policy: OCNPolicy, total_steps: int, steps_done: int):
+    """The training clock LeRobot builds from the policy's scheduler preset for `total_steps`, advanced by
+    `steps_done` updates (with no gradient, so that no weight moves)."""
+    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
+    clock = policy.config.get_scheduler_preset().build(optimizer, num_training_steps=total_steps)
+    for _ in range(steps_done):
+        optimizer.step()
+        clock.step()
+    return optimizer, clock
+
+
+def per_episode_mean_after_first(value: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The mean over episodes of each episode's mean of `value` [T, B] over its real frames t > 1."""
+    later = mask[:, 1:].float()
+    return ((value[1:].transpose(0, 1) * later).sum(1) / later.sum(1)).mean()
+
+
+def test_the_paper_recipe_is_the_nll_of_the_mixture_alone():
+    policy = make_policy(recipe="paper")
+    batch = make_batch()
+    batch[f"{ACTION}_is_pad"][0, 3:] = True
+    loss, stats = policy(batch)
+    parsed = policy.parse(batch)
+    nll = -(parsed["action_log_prob"] * parsed["mask"]).sum(1) / parsed["mask"].sum(1)
+    torch.testing.assert_close(loss, nll.mean())
+    assert stats["final_phase"] == 0.0 and "expected_nll" not in stats
+
+
+def test_the_craft_recipe_adds_the_usage_balance_and_the_expected_nll_before_its_final_phase():
     batch = make_batch(steps=5)
-    batch[f"{ACTION}_is_pad"][0, 3:] = True  # window 0 has 3 real frames
-    plain_loss, plain = make_policy().forward(batch)
-    policy = make_policy(expected_nll_weight=0.5)
-    loss, stats = policy.forward(batch)
-    out = policy._unroll(batch[OBS_STATE], batch["task"])
-    component = policy.head.log_prob(out.params, batch[ACTION].transpose(0, 1))  # [T, 2N, B]
-    expected_nll = -(out.weights * component.transpose(-1, -2)).sum(-1).transpose(0, 1).detach()  # [B, T]
-    per_window = torch.stack([expected_nll[0, :3].mean()] + [row.mean() for row in expected_nll[1:]])
-    torch.testing.assert_close(loss, plain_loss + 0.5 * per_window.mean())
-    assert stats["nll"] == pytest.approx(plain["nll"])
-    assert stats["expected_nll"] == pytest.approx(per_window.mean().item())
-    assert stats["expected_nll"] > stats["nll"]  # Jensen: the log outside the sum is never above
-    loss.backward()
-    assert all(p.grad is not None for p in policy.parameters() if p.requires_grad)
-    with pytest.raises(ValueError, match="expected_nll_weight must be >= 0, got -1.0"):
-        make_policy(expected_nll_weight=-1.0)
+    batch[f"{ACTION}_is_pad"][0, 3:] = True
+    paper, craft = make_policy(recipe="paper"), make_policy(recipe="craft")
+    with torch.no_grad():  # tilt the controller toward option 0 alike, so that the usage is unbalanced
+        for tilted in (paper, craft):
+            tilted.core.controller.b_out[0, 0, 0] += 5.0
+    _, clock = train_clock(craft, total_steps=60, steps_done=0)
+    plain_loss, _ = paper(batch)
+    loss, stats = craft(batch)
+    terms = RECIPE_TABLE["craft"]
+    out = craft._unroll(batch[OBS_STATE], batch["task"])
+    mask = ~batch[f"{ACTION}_is_pad"]
+    component = craft.head.log_prob(out.params, batch[ACTION].transpose(0, 1))
+    expected_nll = -(out.weights * component.transpose(-1, -2)).sum(-1).transpose(0, 1).detach()
+    per_episode = (expected_nll * mask).sum(1) / mask.sum(1)
+    imbalance = usage_imbalance(out.p_c, mask)
+    assert imbalance.item() > 0.01 and stats["usage_imbalance"] == pytest.approx(imbalance.item())
+    torch.testing.assert_close(loss, plain_loss + terms.usage_balance * imbalance
+                               + terms.expected_nll_weight * per_episode.mean())
+    assert stats["final_phase"] == 0.0 and not clock.in_final_phase
+    # The balance's gradient on the controller's output bias: descent lowers the favoured option's logit
+    # and raises the others'.
+    (grad,) = torch.autograd.grad(imbalance, craft.core.controller.b_out)
+    assert grad[0, 0, 0] > 0 and (grad[0, 0, 1:N_OPTIONS] < 0).all()
 
 
-def test_initial_state_std_draws_distinct_task_states_that_send_tasks_to_different_options():
-    zero = make_policy().core
-    assert not zero.controller_init.any() and not zero.option_init.any()
-    core = make_policy(initial_state_std=0.5, n_options=4).core
-    assert 0.3 < core.controller_init.std().item() < 0.7 and 0.3 < core.option_init.std().item() < 0.7
-    x = torch.randn(1, STATE_DIM).expand(2, -1)
-    logits, _ = core.decide(core.project(x).controller, core.controller_init)
-    assert not torch.allclose(logits[0], logits[1])
-    with pytest.raises(ValueError, match="initial_state_std must be >= 0, got -0.1"):
-        make_policy(initial_state_std=-0.1)
+def test_the_craft_recipe_settles_over_the_final_sixth_of_the_run_under_the_log_termination_cost():
+    batch = make_batch(steps=5)
+    batch[f"{ACTION}_is_pad"][0, 3:] = True
+    policy = make_policy(recipe="craft")
+    optimizer, clock = train_clock(policy, total_steps=60, steps_done=49)
+    before, stats_before = policy(batch)
+    assert stats_before["final_phase"] == 0.0 and "settle_penalty" not in stats_before
+    optimizer.step()
+    clock.step()  # 50 updates done: the last 10 of 60 are the final phase
+    loss, stats = policy(batch)
+    assert stats["final_phase"] == 1.0 and clock.in_final_phase
+    end = policy._unroll(batch[OBS_STATE], batch["task"]).end.detach()
+    penalty = per_episode_mean_after_first(-torch.log(1 - end), ~batch[f"{ACTION}_is_pad"])
+    torch.testing.assert_close(loss, before + RECIPE_TABLE["craft"].settle_termination_cost * penalty)
+    assert [group["lr"] for group in optimizer.param_groups] == [1e-3]  # Craft's final phase keeps the lr
+    # The log cost's gradient in the termination logit is e, where a linear one's is e (1 - e): at e = 0.99
+    # it still pulls 100 times harder.
+    logit = torch.tensor(4.59512, requires_grad=True)  # sigmoid = 0.99
+    (grad,) = torch.autograd.grad(settle_penalty(torch.sigmoid(logit)), logit)
+    assert grad.item() == pytest.approx(0.99, rel=1e-3)
+    policy.eval()  # outside training the loss is the main phase's
+    assert policy(batch)[1]["final_phase"] == 0.0
+
+
+def test_a_recipe_with_a_final_phase_needs_the_training_clock_and_the_baselines_skip_the_settling_cost():
+    batch = make_batch()
+    with pytest.raises(ValueError, match="scheduler preset"):
+        make_policy(recipe="craft")(batch)
+    moe = make_policy(recipe="craft", hierarchy="moe")
+    train_clock(moe, total_steps=6, steps_done=5)
+    _, stats = moe(batch)
+    assert stats["final_phase"] == 1.0 and "settle_penalty" not in stats  # MoE's options end every step anyway
+
+
+def test_the_phase_clock_gives_the_final_phase_its_lr_scale_and_resumes_from_its_state():
+    policy = make_policy(recipe="dial", action_type="continuous", action_dim=2, obs_encoder="identity")
+    optimizer, clock = train_clock(policy, total_steps=10, steps_done=0)
+    terms = RECIPE_TABLE["dial"]
+    clock.set_final_phase(terms.final_fraction, terms.final_lr_scale)  # what the policy's first forward does
+    seen = []
+    for _ in range(10):
+        seen.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        clock.step()
+    assert seen == pytest.approx([1e-3] * 8 + [1e-3 * terms.final_lr_scale] * 2)
+    resumed_optimizer, resumed = train_clock(policy, total_steps=10, steps_done=0)
+    resumed.load_state_dict(clock.state_dict())
+    assert resumed.step_count == 10 and resumed.in_final_phase
 
 
 def test_soft_step_mixes_both_branches_by_eq_17():
@@ -690,61 +468,14 @@ def test_actions_without_a_feature_axis_as_lerobot_loads_them():
     torch.testing.assert_close(policy(flat)[0], policy(batch)[0])
 
 
-def pad_around(batch: dict, lead: list[int], width: int) -> dict:
-    """Place each row's frames at offset lead[i] of a window `width` long, padding marked as LeRobot does."""
-    out = {"task": batch["task"]}
-    for key in (OBS_STATE, ACTION):
-        rows = []
-        for i, offset in enumerate(lead):
-            frames = batch[key][i]
-            before = frames[:1].expand(offset, *frames.shape[1:])
-            after = frames[-1:].expand(width - offset - frames.shape[0], *frames.shape[1:])
-            rows.append(torch.cat([before, frames, after]))
-        out[key] = torch.stack(rows)
-    pad = torch.ones(len(lead), width, dtype=torch.bool)
-    for i, offset in enumerate(lead):
-        pad[i, offset : offset + batch[ACTION].shape[1]] = False
-    out[f"{ACTION}_is_pad"] = out[f"{OBS_STATE}_is_pad"] = pad
-    return out
-
-
-def test_episode_windows_train_on_whole_episodes_from_their_start():
-    episodes = make_batch(batch=4, steps=5)
-    centred = pad_around(episodes, lead=[4, 2, 0, 3], width=2 * 5 - 1)
-    policy = make_policy(window_size=5)
-    assert policy.config.observation_delta_indices == list(range(-4, 5))
-    reference = make_policy(window_size=5, window_start="any")
-    reference.load_state_dict(policy.state_dict())
-    per_window, stats = policy(centred, reduction="none")
-    torch.testing.assert_close(per_window, reference(episodes, reduction="none")[0])
-    assert stats["frames_used"] == 4 * 5
-
-
-def test_trailing_padding_is_cut_without_changing_loss_or_gradients():
-    episodes = make_batch(batch=4, steps=5)
-    long_window = pad_around(episodes, lead=[0, 0, 0, 0], width=12)
-    episodes[f"{ACTION}_is_pad"][0, 3:] = long_window[f"{ACTION}_is_pad"][0, 3:] = True
-    policy = make_policy(window_size=12, window_start="any")
-    mask, state, action = training_windows(policy.config, long_window)
-    assert mask.shape == (4, 5) and state.shape[:2] == (4, 5) and action.shape[:2] == (4, 5)
-    grads = []
-    for batch in (long_window, episodes):
-        policy.zero_grad(set_to_none=True)
-        loss, _ = policy(batch)
-        loss.backward()
-        grads.append([p.grad.clone() for p in policy.parameters()])
-    for trimmed, reference in zip(*grads, strict=True):
-        torch.testing.assert_close(trimmed, reference)
-
-
 @pytest.mark.parametrize("hierarchy", ["ocn", "moe", "hil"])
 def test_computing_only_real_frames_changes_no_output_read_and_no_gradient(hierarchy):
     """Training computes the real frames alone: projected alone, and each step over the rows still in
     their episode, longest first (`OCNCore.unroll_frames`). Rows of four lengths, in no order."""
-    policy = make_policy(window_start="any", hierarchy=hierarchy, skill_length=2)
+    policy = make_policy(hierarchy=hierarchy, skill_length=2)
     batch = make_batch()
     batch[f"{ACTION}_is_pad"][0, 3:] = batch[f"{ACTION}_is_pad"][2, 1:] = batch[f"{ACTION}_is_pad"][3, 4:] = True
-    mask, state, action = training_windows(policy.config, batch)
+    mask, state, action, _, _ = policy.training_windows(batch)
     results = []
     for real in (None, mask):
         policy.zero_grad(set_to_none=True)
@@ -776,18 +507,8 @@ def test_unroll_frames_names_rows_out_of_order():
         core.unroll_frames(x, initial, start, gap)
 
 
-def test_any_windows_start_where_they_are_sampled():
-    policy = make_policy(window_size=5, window_start="any")
-    assert policy.config.observation_delta_indices == list(range(5))
-    batch = make_batch()
-    shifted = {k: (v[:, 2:] if torch.is_tensor(v) else v) for k, v in batch.items()}
-    loss, stats = policy(shifted)
-    assert stats["frames_used"] == 4 * 3
-    assert not torch.allclose(loss, policy(batch)[0])
-
-
-def test_loss_is_the_mean_over_windows_of_each_windows_frame_mean():
-    policy = make_policy(window_start="any")
+def test_loss_is_the_mean_over_episodes_of_each_episodes_frame_mean():
+    policy = make_policy()
     batch = make_batch()
     batch[f"{ACTION}_is_pad"][1, 2:] = True
     per_window, _ = policy(batch, reduction="none")
@@ -964,15 +685,21 @@ def test_config_defaults_and_registration():
     import lerobot_policy_ocn  # noqa: F401
 
     assert PreTrainedConfig.get_choice_class("ocn") is OCNConfig
-    craft = OCNConfig(device="cpu")
+    default = OCNConfig(device="cpu")
+    assert (default.recipe, default.obs_encoder, default.action_type, default.n_options) == ("auto", "auto", "auto", 0)
+    assert not default.resolved and not default.normalization_mapping  # both follow from the dataset
+    craft = OCNConfig(device="cpu", recipe="craft", obs_encoder="craft", action_type="discrete", n_actions=5)
     identity = NormalizationMode.IDENTITY
+    assert craft.resolved and craft.n_options == 3
     assert craft.normalization_mapping == {"STATE": identity, "ACTION": identity}
-    dial = OCNConfig(device="cpu", obs_encoder="identity", action_type="continuous")
-    assert dial.normalization_mapping["ACTION"] is NormalizationMode.MEAN_STD
-    assert craft.observation_delta_indices == craft.action_delta_indices == list(range(-31, 32))
-    assert craft.get_optimizer_preset().lr == 1e-3
-    with pytest.raises(ValueError, match="window_start"):
-        OCNConfig(device="cpu", window_start="sometimes")
+    dial = OCNConfig(device="cpu", recipe="dial", obs_encoder="identity", action_type="continuous")
+    assert dial.normalization_mapping["ACTION"] is NormalizationMode.MEAN_STD and dial.n_options == 4
+    assert craft.observation_delta_indices is None and craft.action_delta_indices is None  # single frames
+    assert craft.get_optimizer_preset().lr == 1e-3 and craft.get_scheduler_preset().type == "ocn_phases"
+    with pytest.raises(ValueError, match="recipe"):
+        OCNConfig(device="cpu", recipe="sometimes")
+    with pytest.raises(ValueError, match="follow from its training data"):
+        OCNPolicy(OCNConfig(device="cpu", tasks=["a"], input_features=craft.input_features))
 
 
 def test_full_view_encoder_feeds_the_exact_map_and_keeps_craft_states_unnormalised():
@@ -993,13 +720,14 @@ def test_full_view_encoder_feeds_the_exact_map_and_keeps_craft_states_unnormalis
 
 
 def test_save_and_load_round_trip(tmp_path):
-    policy = make_policy(window_start="any")
+    policy = make_policy(recipe="craft")
     with torch.no_grad():
         policy.core.controller_init.normal_()
     batch = make_batch()
     policy.save_pretrained(tmp_path)
     loaded = OCNPolicy.from_pretrained(tmp_path)
-    assert loaded.config.tasks == TASKS and loaded.config.window_start == "any"
+    assert loaded.config.tasks == TASKS and loaded.config.recipe == "craft"
+    policy.eval(), loaded.eval()  # outside training no recipe phase applies, so no training clock is needed
     torch.testing.assert_close(loaded(batch)[0], policy(batch)[0], rtol=0, atol=0)
     torch.testing.assert_close(loaded.parse(batch)["p_c"], policy.parse(batch)["p_c"], rtol=0, atol=0)
 
@@ -1016,45 +744,16 @@ def test_task_strings_survive_the_preprocessor():
     assert action.shape == (1, 1)
 
 
-def test_policy_from_a_lerobot_dataset_takes_its_tasks(tmp_path):
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot.policies.factory import make_policy as lerobot_make_policy
-
-    features = {
-        OBS_STATE: {"dtype": "float32", "shape": (STATE_DIM,), "names": None},
-        ACTION: {"dtype": "int64", "shape": (1,), "names": None},
-    }
-    root = tmp_path / "ds"
-    dataset = LeRobotDataset.create("local/ocn_test", fps=10, features=features, root=root, use_videos=False)
-    for episode, task in enumerate(["get gold", "make plank"]):
-        for t in range(3 + episode):
-            frame = {OBS_STATE: np.random.randn(STATE_DIM).astype(np.float32), ACTION: np.array([t % 4])}
-            dataset.add_frame({**frame, "task": task})
-        dataset.save_episode()
-    dataset.finalize()
-    config = OCNConfig(
-        device="cpu", obs_encoder="identity", n_actions=4, hidden_size=8, mlp_hidden_size=8, window_size=4
-    )
-    policy = lerobot_make_policy(config, ds_meta=dataset.meta)
-    assert policy.config.tasks == ["get gold", "make plank"]
-    offsets = [i / 10 for i in config.observation_delta_indices]
-    delta_timestamps = {OBS_STATE: offsets, ACTION: offsets}
-    windows = LeRobotDataset("local/ocn_test", root=root, delta_timestamps=delta_timestamps)
-    loader = torch.utils.data.DataLoader(windows, batch_size=len(windows))
-    pre, _ = make_ocn_pre_post_processors(policy.config, dataset.meta.stats)
-    loss, stats = policy(pre(next(iter(loader))))
-    assert stats["frames_used"] == 3 * 3 + 4 * 4 and torch.isfinite(loss)  # every window: its whole episode
-    short = OCNConfig(device="cpu", obs_encoder="identity", n_actions=4, hidden_size=8, window_size=3)
-    with pytest.raises(ValueError, match="episodes of up to 4 frames"):
-        lerobot_make_policy(short, ds_meta=dataset.meta)
-
-
 def test_craft_policy_acts_in_the_craft_env():
     craft = pytest.importorskip("envs.craft.env")
     env = craft.CraftEnv(task="AC")
     obs, _ = env.reset(seed=0)
     config = OCNConfig(
         device="cpu",
+        recipe="craft",
+        obs_encoder="craft",
+        action_type="discrete",
+        n_actions=5,
         hidden_size=8,
         mlp_hidden_size=8,
         tasks=[env.task_description],
@@ -1069,70 +768,6 @@ def test_craft_policy_acts_in_the_craft_env():
         assert action.shape == (1, 1) and 0 <= int(action) < config.n_actions
         obs, *_ = env.step(int(action))
 
-
-
-def test_optimizer_groups_slow_the_controller_only():
-    policy = make_policy(controller_lr_scale=0.1)
-    rest, controller = policy.get_optim_params()
-    assert controller["lr"] == pytest.approx(1e-4) and "lr" not in rest
-    ids = {id(p) for p in controller["params"]}
-    assert id(policy.core.controller_init) in ids and id(policy.core.controller.w_x) in ids
-    assert id(policy.core.options.w_x) not in ids and id(policy.core.option_init) not in ids
-    assert len(ids) + len(rest["params"]) == len(list(policy.parameters()))
-    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
-    assert [group["lr"] for group in optimizer.param_groups] == pytest.approx([1e-3, 1e-4])
-
-
-def test_weight_decay_makes_the_preset_adamw_whose_step_shrinks_every_weight_by_lr_times_decay():
-    assert make_policy().config.get_optimizer_preset().type == "adam"
-    policy = make_policy(controller_lr_scale=0.1, optimizer_weight_decay=0.5)
-    preset = policy.config.get_optimizer_preset()
-    assert (preset.type, preset.weight_decay, preset.grad_clip_norm) == ("adamw", 0.5, 10.0)
-    optimizer = preset.build(policy.get_optim_params())
-    before = {name: p.detach().clone() for name, p in policy.named_parameters()}
-    for p in policy.parameters():
-        p.grad = torch.zeros_like(p)  # no gradient: only the decoupled decay moves a weight
-    optimizer.step()
-    controller = {id(p) for p in policy.get_optim_params()[1]["params"]}
-    for name, p in policy.named_parameters():
-        lr = 1e-4 if id(p) in controller else 1e-3
-        torch.testing.assert_close(p.detach(), before[name] * (1 - lr * 0.5))
-    with pytest.raises(ValueError, match="optimizer_weight_decay must be >= 0, got -0.1"):
-        make_policy(optimizer_weight_decay=-0.1)
-
-
-def scheduled_lrs(policy, steps: int) -> list[list[float]]:
-    """Each parameter group's lr at every step of `steps` optimizer steps under the policy's presets."""
-    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
-    scheduler = policy.config.get_scheduler_preset().build(optimizer, num_training_steps=steps)
-    seen = []
-    for _ in range(steps):
-        seen.append([group["lr"] for group in optimizer.param_groups])
-        optimizer.step()
-        scheduler.step()
-    return seen
-
-
-def test_cosine_schedule_anneals_every_group_to_zero_keeping_the_controller_slower():
-    assert make_policy().config.get_scheduler_preset() is None
-    seen = scheduled_lrs(make_policy(controller_lr_scale=0.1, lr_schedule="cosine"), 100)
-    assert seen[0] == pytest.approx([1e-3, 1e-4])
-    assert seen[50] == pytest.approx([5e-4, 5e-5])
-    assert seen[99][0] < 1e-6 and seen[99][1] < 1e-7
-    with pytest.raises(ValueError, match="lr_schedule"):
-        make_policy(lr_schedule="linear")
-
-
-def test_step_schedule_drops_every_group_by_its_factor_at_the_decay_step():
-    policy = make_policy(controller_lr_scale=0.1, lr_schedule="step", lr_decay_step=3, lr_decay_factor=0.1)
-    assert policy.config.get_scheduler_preset().type == "step_decay"
-    seen = scheduled_lrs(policy, 6)
-    assert seen[:3] == [pytest.approx([1e-3, 1e-4])] * 3
-    assert seen[3:] == [pytest.approx([1e-4, 1e-5])] * 3
-    with pytest.raises(ValueError, match="lr_decay_step >= 1 and 0 < lr_decay_factor < 1, got 0 and 0.1"):
-        make_policy(lr_schedule="step")
-    with pytest.raises(ValueError, match="got 100 and 1.5"):
-        make_policy(lr_schedule="step", lr_decay_step=100, lr_decay_factor=1.5)
 
 
 # ---- MoE baseline (hierarchy="moe") ----------------------------------------------------------------

@@ -4,6 +4,7 @@ Batch plumbing shared with the other whole-episode policies (windows, masks, tas
 `policies.sequence`'s.
 """
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -22,6 +23,7 @@ from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
 from .heads import expected_log_prob, make_action_head, mixture_log_prob
 from .latent_options import LatentDecoderPool
+from .taught import cached_split
 from .recurrence import HardState, OCNCore, OCNState, StepOutput, longest_first
 
 
@@ -55,6 +57,10 @@ def usage_imbalance(p_c: Tensor, mask: Tensor) -> Tensor:
     weights = mask.transpose(0, 1).unsqueeze(-1).to(p_c.dtype)
     share = global_sum((p_c * weights).sum((0, 1))) / global_sum(weights.sum()).clamp_min(1.0)
     return (share * torch.log(share.clamp_min(1e-12) * p_c.shape[-1])).sum()
+
+
+# The per-frame option labels of a taught recipe, a column of the policy's episode memory.
+OPTION = "option"
 
 
 class OCNPolicy(SequencePolicy, PreTrainedPolicy):
@@ -152,10 +158,10 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         """The recipe's loss (`Recipe`) on the batch's whole episodes: the NLL of the mixed action
         distribution, a mean over each episode's real frames and then over episodes, plus the recipe's
         terms; in the final phase, the settling cost too (or, after taught options, the paper's loss)."""
-        mask, state, action, tasks = self.training_windows(batch)
+        mask, state, action, tasks, columns = self.training_windows(batch)
         terms, final = self.config.recipe_terms, self.in_final_phase()
         if terms.taught and not final:
-            return self._taught_forward(batch, mask, state, action, tasks)
+            return self._taught_forward(mask, state, action, tasks, columns)
         out = self._unroll(state, tasks, mask)
         own_terminations = self.config.hierarchy == "ocn"
         penalties = {}
@@ -175,10 +181,35 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             loss = loss + terms.expected_nll_weight * expected
         return loss, stats
 
-    def _taught_forward(self, batch: dict[str, Any], mask: Tensor, state: Tensor, action: Tensor,
-                        tasks: list[str]) -> tuple[Tensor, dict[str, float]]:
-        """`labelled_forward` on the batch's episodes with their option labels (the taught recipe)."""
-        raise NotImplementedError
+    def _remember_episodes(self, dataset_meta: Any) -> None:
+        """The episodes in memory, and under a taught recipe each training frame's option label, from
+        the switching affine split of the training episodes (`policies.ocn.taught`); -1 elsewhere."""
+        super()._remember_episodes(dataset_meta)
+        if not self.config.recipe_terms.taught:
+            return
+        memory = self._episodes
+        rows = memory.trainable.nonzero().squeeze(1)
+        mask, frames, _ = memory.batch(rows)
+        labels, report = cached_split(frames[OBS_STATE].double().numpy(), frames[ACTION].double().numpy(),
+                                      mask.numpy(), self.config.n_options)
+        option = torch.full((len(memory.frames[OBS_STATE]),), -1, dtype=torch.long)
+        frame_rows = memory.start[rows, None] + torch.arange(mask.shape[1])
+        option[frame_rows[mask]] = torch.from_numpy(labels)[mask]
+        memory.frames[OPTION] = option
+        logging.info(f"OCN is taught the switching affine split first (cost {report.cost:.6g}, frames per option "
+                     f"{report.label_share})")
+
+    def _taught_forward(self, mask: Tensor, state: Tensor, action: Tensor, tasks: list[str],
+                        columns: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+        """`labelled_forward` on the batch's episodes and their option labels (the taught recipe)."""
+        if OPTION not in columns:
+            raise ValueError("The taught recipe teaches each training frame's option label, which the policy reads "
+                             "when it is built from its dataset; this batch has none.")
+        option = columns[OPTION].masked_fill(~mask, -1)
+        taught = {OBS_STATE: state, ACTION: action, "task": tasks}
+        own_terminations = self.config.hierarchy == "ocn"
+        weight = self.config.recipe_terms.taught_termination_weight if own_terminations else 1.0
+        return self.labelled_forward(taught, option, weight)
 
     def labelled_forward(
         self, batch: dict[str, Any], option: Tensor, termination_weight: float = 1.0
