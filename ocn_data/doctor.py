@@ -134,7 +134,7 @@ def _episode_rows(root: Path, diagnosis: Diagnosis) -> list[dict[str, Any]]:
     return rows
 
 
-def _data_file_cut(root: Path, path: Path, episodes: list[dict[str, Any]], features: list[str]) -> tuple[int, str]:
+def _data_file_cut(path: Path, episodes: list[dict[str, Any]], features: list[str]) -> tuple[int, str]:
     """How many of `episodes` (those the tables place in the data file `path`, in order) the file
     holds exactly, and if not all, why."""
     if not path.is_file():
@@ -216,7 +216,7 @@ def diagnose(root: str | Path) -> Diagnosis:
         by_file.setdefault((row["data/chunk_index"], row["data/file_index"]), []).append(row)
     for (chunk, file), episodes in by_file.items():
         path = root / info["data_path"].format(chunk_index=chunk, file_index=file)
-        held, problem = _data_file_cut(root, path, episodes, features)
+        held, problem = _data_file_cut(path, episodes, features)
         if problem:
             lost = episodes[held]["episode_index"]
             diagnosis.findings.append(f"{path}: {problem}; episodes from {lost} on cannot be read.")
@@ -270,7 +270,7 @@ def _plan_drops(root: Path, info: dict[str, Any], rows: list[dict[str, Any]], di
             if relative not in listed_data:
                 diagnosis.findings.append(f"{path}: holds frames that no episode table lists (data written "
                                           "before its metadata was).")
-        elif relative not in diagnosis.drop and pq.read_metadata(path).num_rows > kept_frames_per_file[relative]:
+        elif pq.read_metadata(path).num_rows > kept_frames_per_file[relative]:
             diagnosis.trim.append(relative)
             if diagnosis.kept == len(rows):
                 diagnosis.findings.append(f"{path}: holds frames that no episode table lists.")
@@ -291,6 +291,9 @@ def _check_totals(root: Path, info: dict[str, Any], total_tasks: int, diagnosis:
     path = root / INFO_PATH
     totals = (info["total_episodes"], info["total_frames"])
     diagnosis.rewrite_metadata = totals != (diagnosis.kept, diagnosis.kept_frames)
+    if diagnosis.listed == 0:
+        diagnosis.findings.append(f"{root}: its episode tables list no episode; LeRobot cannot load a dataset "
+                                  "without episodes (and would look for it on the Hub).")
     if totals != (diagnosis.listed, diagnosis.listed_frames):
         diagnosis.findings.append(
             f"{path}: says {totals[0]} episodes and {totals[1]} frames; the episode tables list {diagnosis.listed} "
@@ -320,9 +323,8 @@ def _check_provenance(root: Path, diagnosis: Diagnosis) -> None:
         sessions = load_provenance(root)["sessions"]
         accounted = sum(session["episodes"] for session in sessions)
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as error:
-        diagnosis.findings.append(f"{path}: cannot be read ({error}); restore it from a copy "
-                                  "(record_demos --resume needs it).")
-        return
+        raise NotRepairableError(f"{path} cannot be read ({error}); restore it from a copy of the dataset "
+                                 "(record_demos --resume needs it).") from None
     if accounted < diagnosis.listed:
         diagnosis.notes.append(
             f"{path} accounts for {accounted} of the {diagnosis.listed} episodes: a session was cut off before "
@@ -331,13 +333,16 @@ def _check_provenance(root: Path, diagnosis: Diagnosis) -> None:
         )
 
 
-def _kept_stats(root: Path, info: dict[str, Any], kept: int) -> dict[str, dict[str, np.ndarray]]:
-    """The dataset statistics of the first `kept` episodes, aggregated from their own (as LeRobot's
-    writer aggregates them)."""
+def _kept_stats(root: Path, info: dict[str, Any], diagnosis: Diagnosis) -> dict[str, dict[str, np.ndarray]]:
+    """The dataset statistics of the kept episodes, aggregated from their own (as LeRobot's writer
+    aggregates them), read from the episode tables the repair keeps."""
     from lerobot.datasets.compute_stats import aggregate_stats
 
+    kept = diagnosis.kept
     per_episode: list[dict[str, dict[str, np.ndarray]]] = []
     for path in sorted((root / "meta" / "episodes").glob("*/*.parquet")):
+        if _relative(root, path) in diagnosis.drop:
+            continue
         table = pq.read_table(path)
         for row in table.to_pylist():
             if row["episode_index"] >= kept:
@@ -369,13 +374,13 @@ def repair(diagnosis: Diagnosis) -> list[str]:
             transaction.remove(relative)
         for relative in diagnosis.trim:
             _trim(root, relative, transaction, diagnosis.kept)
-        if diagnosis.rewrite_metadata or diagnosis.drop or diagnosis.trim:
+        if diagnosis.rewrite_metadata or diagnosis.trim or diagnosis.kept != diagnosis.listed:
             info = {**info, "total_episodes": diagnosis.kept, "total_frames": diagnosis.kept_frames,
                     "total_tasks": pq.read_metadata(root / TASKS_PATH).num_rows,
                     "splits": split_ranges(diagnosis.kept, _val_fraction(root, info))}
             transaction.fresh(INFO_PATH).write_text(json.dumps(info, indent=4, ensure_ascii=False))
             transaction.fresh(STATS_PATH)
-            write_stats(_kept_stats(root, info, diagnosis.kept), transaction.staging)
+            write_stats(_kept_stats(root, info, diagnosis), transaction.staging)
             _record_repair(root, transaction, diagnosis)
         transaction.publish()
     finally:

@@ -204,8 +204,8 @@ def check_outputs(args: argparse.Namespace) -> None:
 
 
 def check_sound(root: Path) -> None:
-    """`--resume` appends only to a dataset that ocn-doctor finds sound, and whose sessions account
-    for all its episodes (or the seeds of the unaccounted ones would be drawn again)."""
+    """`--resume` appends only to a dataset that ocn-doctor finds sound (what an interrupted commit
+    left beside it is removed before)."""
     diagnosis = diagnose(root)
     if diagnosis.findings:
         raise DamagedDatasetError(
