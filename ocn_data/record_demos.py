@@ -73,7 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--mode", choices=MODES, help="Craft: the paper's 4 resources or the full recipe book (default paper)"
     )
-    p.add_argument("--mcap", type=Path, help="also write every step to this MCAP file (must not exist)")
+    p.add_argument("--mcap", type=Path,
+                   help="also write every step to this MCAP file (must not exist); flushed with every chunk, so a "
+                        "killed recording leaves every published episode in it (`ocn-doctor --repair FILE` "
+                        "finishes it)")
     p.add_argument(
         "--dart-noise",
         type=float,
@@ -90,7 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="also store the ground-truth segmentation as LeRobot language_persistent subtask rows "
         "(lerobot-train reads them; LeRobot 0.6.1's lerobot-dataset-viz cannot batch them)",
     )
-    p.add_argument("--resume", action="store_true", help="append to the existing dataset at --root")
+    p.add_argument("--resume", action="store_true",
+                   help="append to the existing dataset at --root, going on with its seed stream after any kind of "
+                        "end (refused for a damaged dataset: see `ocn-doctor`)")
     p.add_argument("--val-fraction", type=float, default=0.2, help="last fraction of episodes that forms the val split")
     p.add_argument("--batch-size", type=int, help="envs stepped together (Craft 256, 16 with --video; Dial 64)")
     p.add_argument("--chunk-episodes", type=int, default=2000, help="episodes per written data file")
