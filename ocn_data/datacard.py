@@ -7,6 +7,7 @@ for the same dataset.
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -19,12 +20,17 @@ from ocn_data.provenance import PROVENANCE, load_provenance
 DATACARDS = Path(__file__).resolve().parent.parent / "datacards"
 
 
-def render_card(template: str, context: dict) -> str:
-    """Fill `datacards/<template>.md` with `context`; a missing value is an error, not a blank."""
-    env = jinja2.Environment(
+@functools.cache
+def _templates() -> jinja2.Environment:
+    """The card templates, compiled once per process (record_demos rebuilds the card with every chunk)."""
+    return jinja2.Environment(
         loader=jinja2.FileSystemLoader(DATACARDS), undefined=jinja2.StrictUndefined, keep_trailing_newline=True
     )
-    return env.get_template(f"{template}.md").render(**context)
+
+
+def render_card(template: str, context: dict) -> str:
+    """Fill `datacards/<template>.md` with `context`; a missing value is an error, not a blank."""
+    return _templates().get_template(f"{template}.md").render(**context)
 
 
 ANNOTATION = "meta/ocn_annotation.json"

@@ -8,15 +8,29 @@ Demonstration channels: `/observation` (the named state vector), `/action`, `/re
 done) and `/subtask` (the ground-truth subtask being worked on and whether this step completes
 it). Every message carries its episode and frame index. The state's element names are stored
 once, as the MCAP metadata record `observation.state`.
+
+A log is a stream: `flush()` (record_demos calls it after every chunk) writes every message so far
+as complete MCAP records and fsyncs them; `close()` adds the summary and the index. A log whose
+writer was killed holds every flushed message but no summary, which seeking readers (and
+`mcap.reader.make_reader`) refuse: `read_mcap_messages` reads such a log up to its last complete
+record, and `finish_log` (`ocn-doctor --repair LOG`) rewrites it as a finished log.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import struct
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+from mcap.exceptions import McapError
+from mcap.records import Channel, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from ocn_data.durable import atomic_output
 from ocn_data.episodes import EpisodeChunk
 
 STEP_KEYS = {"episode_index": {"type": "integer"}, "frame_index": {"type": "integer"}}
@@ -70,6 +84,11 @@ class JsonMcapLog:
                 channel_id=self._channels[topic], log_time=stamp, publish_time=stamp, data=json.dumps(message).encode()
             )
         self._frame += 1
+
+    def flush(self) -> None:
+        """Write every message so far as complete records and put them on the disk."""
+        self._writer.flush()
+        os.fsync(self._file.fileno())
 
     def close(self) -> None:
         self._writer.finish()
@@ -128,12 +147,66 @@ class DemoMcapWriter(JsonMcapLog):
                 row += 1
 
 
-def read_mcap_messages(path: str | Path) -> dict[str, list[dict]]:
-    """Every message of one of our MCAP logs, decoded, grouped by topic (for tests and quick inspection)."""
+def complete_records(path: str | Path) -> Iterator[Any]:
+    """The records of an MCAP file in order (chunks opened), up to the last complete one: a log
+    whose writer was killed ends with a cut-off record, or with no summary at all."""
+    with Path(path).open("rb") as handle:
+        records = StreamReader(handle).records
+        while True:
+            try:
+                yield next(records)
+            except (StopIteration, McapError, struct.error):
+                return
+
+
+def log_is_finished(path: str | Path) -> bool:
+    """Whether the MCAP file ends with its summary and footer, as a closed writer leaves it."""
     from mcap.reader import make_reader
 
+    try:
+        with Path(path).open("rb") as handle:
+            return make_reader(handle).get_summary() is not None
+    except (McapError, struct.error):
+        return False
+
+
+def read_mcap_messages(path: str | Path) -> dict[str, list[dict]]:
+    """Every message of one of our MCAP logs, finished or not, decoded and grouped by topic."""
+    topics: dict[int, str] = {}
     out: dict[str, list[dict]] = {}
-    with Path(path).open("rb") as f:
-        for _, channel, message in make_reader(f).iter_messages():
-            out.setdefault(channel.topic, []).append(json.loads(message.data))
+    for record in complete_records(path):
+        if isinstance(record, Channel):
+            topics[record.id] = record.topic
+        elif isinstance(record, Message):
+            out.setdefault(topics[record.channel_id], []).append(json.loads(record.data))
     return out
+
+
+def finish_log(path: str | Path) -> int:
+    """Rewrite a log whose writer was killed as a finished one (summary and index), keeping every
+    complete record: schemas, channels, metadata and messages. Returns the messages kept."""
+    messages, started = 0, False
+    with atomic_output(path) as handle:
+        writer = Writer(handle, compression=CompressionType.ZSTD)
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for record in complete_records(path):
+            if isinstance(record, Header):
+                writer.start(profile=record.profile, library=record.library)
+                started = True
+            elif isinstance(record, Schema) and record.id not in schemas:
+                schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+            elif isinstance(record, Channel) and record.id not in channels:
+                channels[record.id] = writer.register_channel(
+                    record.topic, record.message_encoding, schemas.get(record.schema_id, 0), record.metadata
+                )
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, record.metadata)
+            elif isinstance(record, Message):
+                writer.add_message(channels[record.channel_id], record.log_time, record.data, record.publish_time,
+                                   record.sequence)
+                messages += 1
+        if not started:  # killed before its header reached the disk: an empty log
+            writer.start()
+        writer.finish()
+    return messages

@@ -1,14 +1,20 @@
 """`record_demos`: record scripted-expert demonstrations into a LeRobot v3.0 dataset (+ MCAP log).
 
-The dataset is written chunk by chunk, so Ctrl-C or a crash leaves a finalized dataset with every
-episode finished before it, and `--resume` appends to it. Ground-truth subtask labels are stored
-for evaluation only (columns `subtask.*` and LeRobot `language_persistent` subtask rows).
+The dataset is published chunk by chunk, each chunk one atomic commit carrying the data, the
+metadata, the splits, the card and the session's provenance (its seed position and settings), so a
+SIGKILL or a crash at any instant leaves a loadable dataset of every published chunk, and `--resume`
+goes on with the seed stream after it. Ctrl-C (SIGINT) and SIGTERM stop at the next chunk boundary:
+the episodes finished so far are published, and the exit code is 130 or 143. Ground-truth subtask
+labels are stored for evaluation only (columns `subtask.*` and LeRobot `language_persistent` rows).
+Every input and output is checked before anything is written. See ocn_data/README.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shlex
+import signal
 import sys
 from collections.abc import Callable
 from datetime import UTC, datetime
@@ -27,10 +33,21 @@ from ocn_data.craft_recorder import CraftRecorder, craft_features
 from ocn_data.dial_recorder import FPS as DIAL_FPS
 from ocn_data.dial_recorder import DialRecorder, dial_features, random_pins
 from ocn_data.datacard import dataset_card
-from ocn_data.lerobot_writer import ColumnarDatasetWriter, DatasetExistsError
+from ocn_data.doctor import NotRepairableError, diagnose
+from ocn_data.durable import FolderTransaction, previous_path, recover
+from ocn_data.episodes import EpisodeChunk
+from ocn_data.episodes_table import read_info
+from ocn_data.lerobot_writer import (
+    STOP_SIGNALS,
+    ColumnarDatasetWriter,
+    DatasetExistsError,
+    NoDatasetError,
+    held_stop_signals,
+)
 from ocn_data.mcap_log import DemoMcapWriter, check_new_log
+from ocn_data.preflight import check_can_create, check_repo_id
+from ocn_data.provenance import PROVENANCE, load_provenance, write_provenance
 from ocn_data.recorder import ExpertRecorder
-from ocn_data.provenance import load_provenance, write_provenance
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -57,7 +74,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--mode", choices=MODES, help="Craft: the paper's 4 resources or the full recipe book (default paper)"
     )
-    p.add_argument("--mcap", type=Path, help="also write every step to this MCAP file (must not exist)")
+    p.add_argument("--mcap", type=Path,
+                   help="also write every step to this MCAP file (must not exist); flushed with every chunk, so a "
+                        "killed recording leaves every published episode in it (`ocn-doctor --repair FILE` "
+                        "finishes it)")
     p.add_argument(
         "--dart-noise",
         type=float,
@@ -75,16 +95,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="also store the ground-truth segmentation as LeRobot language_persistent subtask rows "
         "(lerobot-train reads them; LeRobot 0.6.1's lerobot-dataset-viz cannot batch them)",
     )
-    p.add_argument("--resume", action="store_true", help="append to the existing dataset at --root")
+    p.add_argument("--resume", action="store_true",
+                   help="append to the existing dataset at --root, going on with its seed stream after any kind of "
+                        "end (refused for a damaged dataset: see `ocn-doctor`)")
     p.add_argument("--val-fraction", type=float, default=0.2, help="last fraction of episodes that forms the val split")
     p.add_argument("--batch-size", type=int, help="envs stepped together (Craft 256, 16 with --video; Dial 64)")
     p.add_argument("--chunk-episodes", type=int, default=2000, help="episodes per written data file")
     return p
 
 
-def _write_card_and_provenance(root: Path, repo_id: str, provenance: dict) -> None:
-    write_provenance(root, provenance)
-    (root / "README.md").write_text(dataset_card(root, repo_id))
+class DamagedDatasetError(Exception):
+    """`--resume` on a dataset that must be repaired (or resumed with another seed) first."""
+
+
+class WriteFailedError(Exception):
+    """Writing failed mid-way (disk full, a file size limit, a read-only mount): what was published stays."""
 
 
 def _positive(value: int | None, flag: str) -> int:
@@ -168,23 +193,97 @@ def check_resumable(last: dict, env: str, session: dict) -> None:
             )
 
 
-def record(args: argparse.Namespace) -> int:
-    """Run one recording session; returns the process exit code."""
-    provenance = load_provenance(args.root) if args.resume else {"sessions": []}
-    first_attempt = sum(s["attempts"] for s in provenance["sessions"])
-    make_recorder, features, fps, world_session = SETUPS[args.env](args, first_attempt)
+def check_outputs(args: argparse.Namespace) -> None:
+    """Everything about the outputs that can be refused before anything is written."""
+    check_repo_id(args.repo_id)
+    if args.chunk_episodes < 1:
+        raise ValueError(f"--chunk-episodes must be >= 1, got {args.chunk_episodes}")
+    if not 0.0 <= args.val_fraction < 1.0:
+        raise ValueError(f"--val-fraction must be in [0, 1), got {args.val_fraction}")
     if args.mcap is not None:
         check_new_log(args.mcap)
+        check_can_create(args.mcap, "--mcap")
+    recoverable = previous_path(args.root).exists()
+    if args.resume and not (args.root.exists() or recoverable):
+        raise NoDatasetError(args.root)
+    if not args.resume:
+        if args.root.exists() or recoverable:
+            raise DatasetExistsError(args.root)
+        check_can_create(args.root, "--root")
+
+
+def check_sound(root: Path) -> None:
+    """`--resume` appends only to a dataset that ocn-doctor finds sound (what an interrupted commit
+    left beside it is removed before)."""
+    diagnosis = diagnose(root)
+    if diagnosis.findings:
+        raise DamagedDatasetError(
+            f"--resume: {diagnosis.findings[0]} Run `ocn-doctor --repair {root}` first (`ocn-doctor {root}` lists "
+            "every problem)."
+        )
+
+
+def check_accounted(root: Path, provenance: dict, seed: int) -> None:
+    """Refuse a resume that would draw again the seeds of episodes no session accounts for (a
+    session cut off before record_demos committed its record with each chunk), unless the seed is new."""
+    sessions = provenance["sessions"]
+    accounted = sum(session["episodes"] for session in sessions)
+    total = read_info(root)["total_episodes"]
+    used = sorted({session["seed"] for session in sessions})
+    if sessions and accounted < total and seed in used:
+        raise DamagedDatasetError(
+            f"--resume: {root / PROVENANCE} accounts for {accounted} of its {total} episodes (a session was cut off "
+            f"before its record was written), so --seed {seed} could record some of them again; resume with a "
+            f"--seed no session used (used: {', '.join(map(str, used))})."
+        )
+
+
+class StopRequest:
+    """SIGINT and SIGTERM during a recording: both stop it at the next chunk boundary (the chunk
+    being published is finished first, see `held_stop_signals`); `signum` says which came."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def __call__(self, signum: int, frame: object) -> None:
+        self.signum = signum
+        raise KeyboardInterrupt
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum or signal.SIGINT).name
+
+    @property
+    def exit_code(self) -> int:
+        """The shell's convention: 128 + the signal (130 for SIGINT, 143 for SIGTERM)."""
+        return 128 + (self.signum or signal.SIGINT)
+
+
+def record(args: argparse.Namespace) -> int:
+    """Run one recording session; returns the process exit code."""
+    check_outputs(args)
+    for done in recover(args.root):
+        print(f"record_demos: {done}", file=sys.stderr)
+    provenance = {"sessions": []}
+    if args.resume:
+        check_sound(args.root)
+        provenance = load_provenance(args.root)
+        check_accounted(args.root, provenance, args.seed)
+    first_attempt = sum(s["attempts"] for s in provenance["sessions"])
+    make_recorder, features, fps, world_session = SETUPS[args.env](args, first_attempt)
     if provenance["sessions"]:
         check_resumable(provenance["sessions"][-1], args.env, world_session)
+        if provenance["sessions"][-1].get("status") == "recording":
+            print(f"record_demos: the last session was cut off (SIGKILL or a crash) after "
+                  f"{provenance['sessions'][-1]['episodes']} episodes; its seed stream goes on here", file=sys.stderr)
     writer = ColumnarDatasetWriter(
         args.root, args.repo_id, fps, features,
         resume=args.resume,
         robot_type=args.env,
         language=args.subtask_annotations,
+        val_fraction=args.val_fraction,
     )
     recorder = make_recorder()
-    mcap = DemoMcapWriter(args.mcap, fps, features["observation.state"]["names"]) if args.mcap else None
     start_episodes = writer.total_episodes
     session = {
         "command": shlex.join(["record_demos", *args.argv]),
@@ -192,46 +291,85 @@ def record(args: argparse.Namespace) -> int:
         "env": args.env,
         "seed": args.seed,
         "reward": args.reward,
+        "val_fraction": args.val_fraction,
         **world_session,
+        "status": "recording",
+        "interrupted": True,
+        "episodes": 0,
+        "attempts": 0,
+        "expert_failures": 0,
     }
-    interrupted = False
+    sessions = [*provenance["sessions"], session]
     bar = tqdm(total=recorder.total, unit="ep", desc=f"record {args.repo_id}")
+    log: DemoMcapWriter | None = None
 
-    def save(chunk) -> None:
-        if chunk.num_episodes == 0:
-            return
-        first = writer.total_episodes
-        writer.write(chunk)
-        if mcap is not None:
-            mcap.write(chunk, first)
+    def finish(transaction: FolderTransaction) -> None:
+        """Each published version carries the session as far as it got, and its card."""
+        transaction.fresh(PROVENANCE)
+        write_provenance(transaction.staging, {**provenance, "sessions": sessions})
+        transaction.fresh("README.md").write_text(dataset_card(transaction.staging, args.repo_id))
+
+    def save(chunk: EpisodeChunk) -> None:
+        """The chunk goes to the MCAP log first (flushed), then into the dataset; a stop request
+        waits for both, so the log never holds a chunk under episode indices the dataset gives others."""
+        nonlocal log
+        with held_stop_signals():
+            if args.mcap is not None and chunk.num_episodes:
+                try:
+                    if log is None:
+                        log = DemoMcapWriter(args.mcap, fps, features["observation.state"]["names"])
+                    log.write(chunk, writer.total_episodes)
+                    log.flush()
+                except OSError as error:
+                    error.filename = error.filename or str(args.mcap)
+                    raise
+            session.update(
+                episodes=writer.total_episodes + chunk.num_episodes - start_episodes,
+                attempts=recorder.attempts - first_attempt,
+                expert_failures=recorder.failures,
+            )
+            writer.write(chunk, finish)
         bar.update(chunk.num_episodes)
 
+    stop = StopRequest()
+    handlers = {signum: signal.signal(signum, stop) for signum in STOP_SIGNALS}
     try:
-        for chunk in recorder.chunks(args.chunk_episodes):
-            save(chunk)
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
+        try:
+            for chunk in recorder.chunks(args.chunk_episodes):
+                save(chunk)
+            session["status"] = "finished"
+        except KeyboardInterrupt:
+            session["status"] = f"interrupted by {stop.name}"
+        except Exception:
+            session["status"] = "stopped by an error"
+            with contextlib.suppress(Exception):  # the first error is the one to report
+                save(recorder.take_finished())
+            raise
+        session["interrupted"] = session["status"] != "finished"
+        for signum in STOP_SIGNALS:  # the last save is short: a second stop request must not cut it off
+            signal.signal(signum, signal.SIG_IGN)
         save(recorder.take_finished())
+    except OSError as error:
+        raise WriteFailedError(
+            f"{error.strerror or error} writing {error.filename or args.root}; {args.root} keeps its "
+            f"{writer.total_episodes} published episodes" + (f" and {args.mcap} the flushed ones" if log else "")
+            + ": make room (or fix the path), then record the rest with --resume"
+        ) from error
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
         bar.close()
-        if mcap is not None:
-            mcap.close()
-        writer.finalize(args.val_fraction)
-        session |= {
-            "episodes": writer.total_episodes - start_episodes,
-            "attempts": recorder.attempts - first_attempt,
-            "expert_failures": recorder.failures,
-            "interrupted": interrupted,
-        }
-        provenance["sessions"].append(session)
-        _write_card_and_provenance(args.root, writer.meta.repo_id, provenance)
+    if log is not None:
+        log.close()
     recorded = writer.total_episodes - start_episodes
+    interrupted = session["interrupted"]
     print(
         f"{'interrupted: ' if interrupted else ''}recorded {recorded} episodes "
         f"({writer.total_episodes} in total, {writer.total_frames} frames) into {args.root}"
-        + (f"; MCAP log {args.mcap}" if mcap else "")
+        + (f"; MCAP log {args.mcap}" if log else "")
+        + ("" if writer.total_episodes else " (no dataset written: no episode was finished)")
     )
-    return 130 if interrupted else 0
+    return stop.exit_code if interrupted else 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -240,8 +378,10 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = sys.argv[1:] if argv is None else list(argv)  # the session's command, in-process calls too
     try:
         return record(args)
-    except (ValueError, FileExistsError, FileNotFoundError, DatasetExistsError) as err:
+    except (ValueError, FileExistsError, FileNotFoundError, DamagedDatasetError, NotRepairableError) as err:
         parser.exit(2, f"record_demos: error: {err}\n")
+    except WriteFailedError as err:
+        parser.exit(1, f"record_demos: error: {err}\n")
 
 
 if __name__ == "__main__":

@@ -261,9 +261,10 @@ def test_ocn_eval_count_free_read_out(ompn_checkpoint, ocn_checkpoint, craft_dat
         assert parse.boundaries.tolist() == threshold_boundaries(depths["depth"][i, :n].numpy(), 0.5).tolist()
     segments = np.mean([len(parse.boundaries) for parse in parses])
     assert result["parse_statistics"]["segments_per_episode"] == pytest.approx(segments)
-    assert ocn_eval.main(["--policy", str(ompn_checkpoint), *base, "--out", str(out), "--boundary-threshold", "1"]) == 2
+    refused = str(tmp_path / "refused.json")  # a new --out: ocn-eval keeps the result above
+    assert ocn_eval.main(["--policy", str(ompn_checkpoint), *base, "--out", refused, "--boundary-threshold", "1"]) == 2
     assert "boundary_threshold must lie in (0, 1)" in capsys.readouterr().err
-    assert ocn_eval.main(["--policy", str(ocn_checkpoint), *base, "--out", str(out),
+    assert ocn_eval.main(["--policy", str(ocn_checkpoint), *base, "--out", refused,
                           "--boundary-threshold", "0.5"]) == 2
     assert "`ocn` has none" in capsys.readouterr().err
 

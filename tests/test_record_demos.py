@@ -19,6 +19,7 @@ from lerobot.utils.collate import lerobot_collate_fn
 
 from envs.craft.world import parse_task, task_description
 from ocn_data.mcap_log import read_mcap_messages
+from unwritable import read_only_folder
 
 RECORD = [sys.executable, "-m", "ocn_data.record_demos"]
 
@@ -153,6 +154,9 @@ def test_resume_appends_and_fresh_root_is_required(recorded, tmp_path):
         (["--tasks", "make bed"], "valid"),
         (["--tasks", "AC,AC"], "twice"),
         (["--tasks", "AC", "--resume"], "no LeRobot dataset"),
+        (["--tasks", "AC", "--repo-id", "no slash here"], "must be ORG/NAME with exactly one slash"),
+        (["--tasks", "AC", "--repo-id", "a/b/c"], "must be ORG/NAME with exactly one slash"),
+        (["--tasks", "AC", "--chunk-episodes", "0"], "--chunk-episodes must be >= 1"),
     ],
 )
 def test_bad_input_is_a_clear_error(tmp_path, args, message):
@@ -162,6 +166,26 @@ def test_bad_input_is_a_clear_error(tmp_path, args, message):
     assert "Traceback" not in proc.stderr
     assert message in proc.stderr
     assert not (tmp_path / "new").exists() or "--resume" in args
+
+
+def test_unwritable_outputs_are_refused_before_anything_is_written(tmp_path, capsys):
+    from ocn_data.record_demos import main
+
+    root, blocked, a_file = tmp_path / "new", tmp_path / "blocked", tmp_path / "a_file"
+    a_file.write_text("not a folder")
+    cases = {
+        "--mcap": (["--root", str(root), "--mcap", str(blocked / "demo.mcap")], f"cannot write in {blocked}"),
+        "--root": (["--root", str(blocked / "ds")], f"cannot write in {blocked}"),
+        "--root ": (["--root", str(a_file / "ds")], f"{a_file} is a file, not a folder"),
+    }
+    with read_only_folder(blocked):
+        for flag, (args, message) in cases.items():
+            with pytest.raises(SystemExit) as exit_info:
+                main(["--tasks", "AC", "--episodes-per-task", "2", "--repo-id", "local/x", *args])
+            err = capsys.readouterr().err.strip()
+            assert exit_info.value.code == 2 and len(err.splitlines()) == 1, err
+            assert flag.strip() in err and message in err
+            assert not root.exists() and list(blocked.iterdir()) == []
 
 
 def test_unknown_letter_lists_valid_subtasks(tmp_path):

@@ -11,6 +11,7 @@ per episode), through that type's entry in `PARSERS`: a new model type adds an e
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -76,19 +77,67 @@ class Parser:
     no_action_nll: str | None = None
 
 
-def load_policy(path: Path, device: str = "cpu") -> tuple[PreTrainedPolicy, Processor, Processor]:
-    """A checkpoint (a `pretrained_model` folder) of any registered policy type, in eval mode, with
-    its pre/post-processors. The project's entry package is imported first, as LeRobot's CLIs do,
-    so that every policy type it ships (`ocn`, `ompn`, `compile`) is registered in any process."""
+def checkpoint_type(path: Path) -> str:
+    """The policy type a checkpoint's config.json names, read before anything is loaded."""
+    config = Path(path) / "config.json"
+    if not config.exists():
+        raise FileNotFoundError(f"{path} holds no config.json: pass a checkpoint's pretrained_model folder.")
+    try:
+        policy_type = json.loads(config.read_text()).get("type")
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError) as error:
+        raise ValueError(f"{config} is not a valid config ({error}): the checkpoint is damaged; copy it again.") \
+            from None
+    if not isinstance(policy_type, str):
+        raise ValueError(f"{config} names no policy type: pass a checkpoint's pretrained_model folder.")
+    return policy_type
+
+
+def check_checkpoint_files(path: Path) -> None:
+    """Every JSON file of a checkpoint parses and every safetensors file is whole (its header and the
+    tensors it announces fit in the file): a truncated copy is named here, not deep in LeRobot."""
+    from safetensors import SafetensorError, safe_open
+
+    for file in sorted(Path(path).glob("*.json")):
+        try:
+            json.loads(file.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            raise ValueError(f"{file} is truncated or corrupt ({error}): copy the checkpoint again.") from None
+    for file in sorted(Path(path).glob("*.safetensors")):
+        try:
+            with safe_open(file, "pt"):
+                pass
+        except SafetensorError as error:
+            raise ValueError(f"{file} is truncated or corrupt ({error}): copy the checkpoint again.") from None
+
+
+def load_policy(
+    path: Path, device: str = "cpu", types: Sequence[str] | None = None
+) -> tuple[PreTrainedPolicy, Processor, Processor]:
+    """A checkpoint (a `pretrained_model` folder) of any registered policy type, or of one of `types`
+    (what the calling tool takes), in eval mode, with its pre/post-processors. The project's entry
+    package is imported first, as LeRobot's CLIs do, so that every policy type it ships (`ocn`,
+    `ompn`, `compile`) is registered in any process. A checkpoint of another type, or with a damaged
+    file, is a one-line ValueError naming it, before any weight is read."""
+    import draccus
     import lerobot_policy_ocn  # noqa: F401
     from lerobot.configs import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
     path = Path(path)
-    if not (path / "config.json").exists():
-        raise FileNotFoundError(f"{path} holds no config.json: pass a checkpoint's pretrained_model folder.")
-    config = PreTrainedConfig.from_pretrained(path)
-    policy = get_policy_class(config.type).from_pretrained(path, config=config)
+    policy_type = checkpoint_type(path)
+    if types is not None and policy_type not in types:
+        wanted = " or ".join(", ".join(f"`{t}`" for t in types).rsplit(", ", 1))
+        raise ValueError(f"{path} holds an `{policy_type}` checkpoint; this tool needs an {wanted} one.")
+    check_checkpoint_files(path)
+    try:
+        config = PreTrainedConfig.from_pretrained(path)
+    except draccus.utils.DraccusException as error:
+        raise ValueError(f"{path / 'config.json'} does not describe a `{policy_type}` policy: {error}") from None
+    try:
+        policy = get_policy_class(config.type).from_pretrained(path, config=config)
+    except RuntimeError as error:
+        first_line = str(error).strip().splitlines()[0]
+        raise ValueError(f"{path / 'model.safetensors'} does not fit {path / 'config.json'}: {first_line}") from None
     policy.config.device = device
     policy.to(device).eval()
     preprocessor, postprocessor = make_pre_post_processors(
@@ -99,10 +148,7 @@ def load_policy(path: Path, device: str = "cpu") -> tuple[PreTrainedPolicy, Proc
 
 def load_ocn(path: Path, device: str = "cpu") -> tuple[OCNPolicy, Processor, Processor]:
     """`load_policy` for tools that need OCN's options: another policy type is a ValueError."""
-    policy, preprocessor, postprocessor = load_policy(path, device)
-    if not isinstance(policy, OCNPolicy):
-        raise ValueError(f"{path} holds an `{policy.name}` checkpoint; this tool needs an `ocn` one.")
-    return policy, preprocessor, postprocessor
+    return load_policy(path, device, types=("ocn",))
 
 
 def check_tasks(policy: PreTrainedPolicy, episodes: EpisodeArrays) -> None:

@@ -47,11 +47,14 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def check_paths(root: Path, out_root: Path) -> None:
-    """Refuse before any parsing: no dataset at root, an existing out-root, an out-root inside root,
-    or a dataset without the ground-truth columns that episodes are read with."""
+def check_paths(root: Path, out_root: Path, repo_id: str) -> None:
+    """Refuse before any parsing: a repo id that is not ORG/NAME, no dataset at root, an existing
+    out-root, an out-root inside root or where nothing can be written, or a dataset without the
+    ground-truth columns that episodes are read with."""
     from ocn_data.episodes_table import read_info
+    from ocn_data.preflight import check_can_create, check_repo_id
 
+    check_repo_id(repo_id)
     info = read_info(root)
     if out_root.exists():
         raise FileExistsError(
@@ -59,6 +62,7 @@ def check_paths(root: Path, out_root: Path) -> None:
         )
     if out_root.resolve().is_relative_to(root.resolve()):
         raise ValueError(f"--out-root {out_root} lies inside the dataset {root}; choose a folder outside it.")
+    check_can_create(out_root, "--out-root")
     missing = [key for key in LABELS if key not in info["features"]]
     if missing:
         raise ValueError(
@@ -171,7 +175,7 @@ def write_annotated(root: Path, out_root: Path, segments: dict, annotation: dict
 
 def annotate(args: argparse.Namespace) -> dict[str, Any]:
     """Parse, then write the annotated copy; returns the annotation record it stores."""
-    check_paths(args.root, args.out_root)
+    check_paths(args.root, args.out_root, args.repo_id)
     world = world_of(args.root)  # a dataset of a world ocn-annotate does not know fails here, before parsing
     segments, names = parse_dataset(args.policy, args.root, world, args.name_by, args.batch_size, args.device)
     annotation = {
@@ -196,6 +200,10 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, FileExistsError, ValueError) as error:
         print(f"ocn-annotate: {error}", file=sys.stderr)
         return 2
+    except OSError as error:  # a full disk while copying: the scratch copy is gone, --out-root never made
+        print(f"ocn-annotate: cannot write {error.filename or args.out_root} ({error.strerror or error}); nothing was "
+              f"written to {args.out_root}: free space and run again", file=sys.stderr)
+        return 1
     named = ", ".join(f"option {o['option']} -> {o['name']!r}" for o in annotation["options"])
     print(f"wrote {annotation['segments']} segments over {annotation['episodes']} episodes ({named}) "
           f"into {args.out_root}")

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import io
 import json
 import sys
 import time
@@ -28,6 +29,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from ocn_data.durable import write_atomic
+from ocn_data.preflight import check_can_create, check_repo_id
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -39,7 +43,9 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--root", type=Path, required=True, help="the LeRobot dataset's folder")
     parser.add_argument("--repo-id", required=True, help="the dataset's repo id, recorded in the output")
     parser.add_argument("--split", default="val", help="split of meta/info.json to parse: train, val or all")
-    parser.add_argument("--out", type=Path, required=True, help="JSON file to write; the PNG goes beside it")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="JSON file to write (must not exist unless --force); the PNG goes beside it")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing --out JSON and its PNG")
     parser.add_argument("--max-episodes", type=int, default=None, help="parse at most this many split episodes")
     parser.add_argument("--rollouts", type=int, default=200, help="env episodes per task and per table cell")
     parser.add_argument("--seed", type=int, default=100_000,
@@ -80,8 +86,28 @@ def plot_option_table(table: np.ndarray, subtasks: list[str], path: Path, title:
     ax.set_xlabel("subtask")
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    image = io.BytesIO()
+    fig.savefig(image, format="png", dpi=120)
     plt.close(fig)
+    write_atomic(path, image.getvalue())
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Refuse, before any work, an id that is not ORG/NAME, a result that exists (unless --force:
+    results are not overwritten by accident), an output folder that cannot be written, an MCAP log
+    that exists."""
+    from ocn_data.mcap_log import check_new_log
+
+    check_repo_id(args.repo_id)
+    if not args.force:
+        for path in (args.out, args.out.with_suffix(".png")):
+            if path.exists():
+                raise FileExistsError(f"--out: {path} already exists; ocn-eval does not overwrite a result: choose "
+                                      "another --out, or pass --force to replace it.")
+    check_can_create(args.out, "--out")
+    if args.mcap is not None:
+        check_new_log(args.mcap)
+        check_can_create(args.mcap, "--mcap")
 
 
 def evaluate(args: argparse.Namespace) -> dict[str, Any]:
@@ -89,16 +115,15 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     import torch
 
     from ocn_data.episodes_table import load_episodes, read_info, split_episodes
-    from ocn_data.mcap_log import check_new_log
     from tools import rollouts
-    from tools.episode_parsing import action_nll, load_policy, parse_statistics, parser_of, score_segmentations
+    from tools.episode_parsing import (PARSERS, action_nll, load_policy, parse_statistics, parser_of,
+                                       score_segmentations)
     from tools.worlds import world_of
 
-    if args.mcap is not None:
-        check_new_log(args.mcap)
+    check_outputs(args)
     world = world_of(args.root)
     info = read_info(args.root)
-    policy, preprocessor, postprocessor = load_policy(args.policy, args.device)
+    policy, preprocessor, postprocessor = load_policy(args.policy, args.device, types=tuple(PARSERS))
     parser = parser_of(policy)
     readout = {}
     if policy.name == "ompn":
@@ -197,6 +222,21 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def write_result(result: dict[str, Any], args: argparse.Namespace) -> list[Path]:
+    """The JSON and, for a policy made of options, the option table's PNG beside it, each written
+    atomically; a PNG an earlier result left there is removed (--force). Returns what was written."""
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(args.out, json.dumps(result, indent=2) + "\n")
+    table = result["option_subtask_success"]
+    png = args.out.with_suffix(".png")
+    if table is None:
+        png.unlink(missing_ok=True)
+        return [args.out]
+    run = "/".join(args.policy.parts[-6:-3])
+    plot_option_table(np.array(table["table"]), table["subtasks"], png, f"option x subtask success\n{run}")
+    return [args.out, png]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parse_args(argv)
     try:
@@ -204,14 +244,13 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, FileExistsError, ValueError) as error:
         print(f"ocn-eval: {error}", file=sys.stderr)
         return 2
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    table = result["option_subtask_success"]
-    written = [args.out]
-    if table is not None:
-        written.append(args.out.with_suffix(".png"))
-        run = "/".join(args.policy.parts[-6:-3])
-        plot_option_table(np.array(table["table"]), table["subtasks"], written[-1], f"option x subtask success\n{run}")
+    try:
+        written = write_result(result, args)
+    except OSError as error:
+        print(json.dumps(result, indent=2))  # the evaluation is not lost with the file
+        print(f"ocn-eval: cannot write {error.filename or args.out} ({error.strerror or error}); the result is on "
+              "stdout above: free space or choose another --out", file=sys.stderr)
+        return 1
     nmi = "n/a" if result["nmi"] is None else f"{result['nmi']:.3f}"
     print(
         f"F1@0 {result['f1_tol0']:.3f}  F1@1 {result['f1_tol1']:.3f}  align {result['align_acc']:.3f}  "

@@ -79,6 +79,7 @@ import torch
 
 from lerobot.configs import NormalizationMode
 from lerobot.policies.pretrained import PreTrainedPolicy
+from ocn_data.preflight import check_can_create
 from policies.compile import CompILEPolicy
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
 from policies.ompn import OMPNPolicy
@@ -88,6 +89,8 @@ from tools.ompn_rl import finetunable_ompn, ompn_for_tasks
 from tools.ppo import Acting, PPOConfig, RunSnapshot, env_tasks, finetune
 from tools.worlds import World, craft, dial, policy_world
 
+# The checkpoint types --checkpoint takes: options to pool (ocn), a decoder's latents (compile), OMPN's RL form.
+FINETUNED_TYPES = ("ocn", "compile", "ompn")
 # The new controller's softmax temperature unless --temperature says otherwise (module docstring).
 FRESH_CONTROLLER_TEMPERATURE = 1.0
 
@@ -279,11 +282,9 @@ def compile_latent_options(policy: CompILEPolicy, name: str) -> OCNPolicy:
 
 def option_source(policy: PreTrainedPolicy, name: str) -> OCNPolicy:
     """The OCN whose options a checkpoint adds to the pool: an `ocn` checkpoint as it is, a `compile`
-    one as its decoder's latents."""
+    one as its decoder's latents (`load_policy` let no other type through)."""
     if isinstance(policy, CompILEPolicy):
         return compile_latent_options(policy, name)
-    if not isinstance(policy, OCNPolicy):
-        raise ValueError(f"{name} holds a `{policy.name}` checkpoint; ocn-finetune pools `ocn` and `compile` ones.")
     return policy
 
 
@@ -338,6 +339,7 @@ def _check_args(args: argparse.Namespace) -> None:
     elif args.out.exists() and (not args.out.is_dir() or any(args.out.iterdir())):
         raise FileExistsError(f"--out {args.out} exists and is not an empty folder; outputs are never overwritten "
                               "(--resume goes on with an interrupted run).")
+    check_can_create(args.out / "curve.csv", "--out")
 
 
 def run_settings(args: argparse.Namespace) -> dict[str, Any]:
@@ -393,7 +395,7 @@ def _start(args: argparse.Namespace) -> Start:
         torch.manual_seed(args.seed)
         policy = primitive_action_pool(tasks, args.hidden_size, args.temperature)
         return Start(policy, world, tasks, labels, *make_ocn_pre_post_processors(policy.config))
-    loaded = [load_policy(path) for path in args.checkpoint]
+    loaded = [load_policy(path, types=FINETUNED_TYPES) for path in args.checkpoint]
     names = [str(path) for path in args.checkpoint]
     if any(isinstance(policy, OMPNPolicy) for policy, _, _ in loaded):
         ompn = finetunable_ompn([policy for policy, _, _ in loaded], names, args.temperature)
@@ -512,6 +514,10 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, FileExistsError, ValueError) as error:
         print(f"ocn-finetune: {error}", file=sys.stderr)
         return 2
+    except OSError as error:  # a full disk mid-run: the last snapshot stays (it is replaced atomically)
+        print(f"ocn-finetune: cannot write {error.filename or args.out} ({error.strerror or error}); free space, then "
+              f"go on with --resume if {args.out / STATE_FILE} exists (else run again)", file=sys.stderr)
+        return 1
     print(
         f"{summary['frames']} frames in {summary['wall_s']} s ({summary['frames_per_s']} frames/s); last iteration: "
         f"success {summary['final_success']:.3f}, mean return {summary['final_mean_return']:.3f}"

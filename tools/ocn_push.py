@@ -23,6 +23,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from ocn_data.preflight import check_repo_id
+
 DATASET_TAGS = ("LeRobot", "robotics")
 POLICY_TAGS = ("lerobot", "robotics", "ocn", "option-controller-network", "hierarchical-imitation", "skill-induction")
 POLICY_SUFFIXES = (".json", ".safetensors", ".yaml")
@@ -62,18 +64,6 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     policy.add_argument("--eval-json", type=Path, help="an ocn-eval JSON of the checkpoint: metrics for the card")
     policy.add_argument("--train-command", help="the command that trained it, shown in the card")
     return parser.parse_args(argv)
-
-
-def check_repo_id(repo_id: str) -> None:
-    """The Hub needs ORG/NAME; catching a bad id here spares a failed upload after staging."""
-    from huggingface_hub.utils import HFValidationError, validate_repo_id
-
-    try:
-        validate_repo_id(repo_id)
-    except HFValidationError as error:
-        raise ValueError(f"--repo-id {repo_id!r} is not a valid Hub repo id: {error}") from None
-    if repo_id.count("/") != 1:
-        raise ValueError(f"--repo-id {repo_id!r} must be ORG/NAME.")
 
 
 def dataset_files(root: Path) -> dict[str, Path]:

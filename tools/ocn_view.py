@@ -47,6 +47,7 @@ import rerun.blueprint as rrb
 from tqdm import tqdm
 
 from ocn_data.episodes_table import read_info
+from ocn_data.preflight import check_can_create, check_repo_id
 from tools.parsing_metrics import segment_starts
 from tools.segmentation_plot import SWITCH_COLOUR, EpisodeView, option_colours, plot_segmentation, subtask_colours
 from tools.worlds import World, world_of
@@ -380,9 +381,18 @@ def _wait_for_interrupt() -> None:
         pass
 
 
+def check_outputs(args: argparse.Namespace) -> None:
+    """Refuse, before any work, a repo id that is not ORG/NAME and an output that cannot be written."""
+    check_repo_id(args.repo_id)
+    for path, flag in ((args.save, "--save"), (args.png, "--png")):
+        if path is not None:
+            check_can_create(path, flag)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parse_args(argv)
     try:
+        check_outputs(args)
         world = world_of(args.root)
         info = read_info(args.root)
         episodes = load_view(args, info)
