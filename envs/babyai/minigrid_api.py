@@ -10,16 +10,8 @@ try:
     from minigrid.core.actions import Actions
     from minigrid.core.constants import COLOR_NAMES, COLOR_TO_IDX, OBJECT_TO_IDX, STATE_TO_IDX
     from minigrid.envs.babyai.core.roomgrid_level import RoomGridLevel
-    from minigrid.envs.babyai.core.verifier import (
-        ActionInstr,
-        AndInstr,
-        BeforeInstr,
-        Instr,
-        ObjDesc,
-        OpenInstr,
-        PickupInstr,
-        SeqInstr,
-    )
+    from minigrid.envs.babyai.core.verifier import ActionInstr, AndInstr, BeforeInstr, Instr
+    from minigrid.envs.babyai.core.verifier import ObjDesc, OpenInstr, PickupInstr
     from minigrid.utils.baby_ai_bot import BabyAIBot
 except ModuleNotFoundError as error:
     if error.name is None or error.name.partition(".")[0] != "minigrid":
@@ -41,5 +33,4 @@ __all__ = [
     "OpenInstr",
     "PickupInstr",
     "RoomGridLevel",
-    "SeqInstr",
 ]
