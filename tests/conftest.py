@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,11 @@ from lerobot.utils.constants import ACTION, OBS_STATE
 from ocn_data.record_demos import main as record_demos
 
 CRAFT_REPO_ID = "local/craft_small"
+# What a policy of Craft's compact state and actions takes from a dataset, for policies built in memory.
+CRAFT_STATE = {"obs_encoder": "craft", "action_type": "discrete", "n_actions": 5}
+# The Dial recipe caches its affine fits beside LeRobot's cache (`policies.ocn.taught.split_cache_dir`): the
+# tests, and the processes they start, keep theirs in a folder of their own.
+os.environ["HF_LEROBOT_HOME"] = tempfile.mkdtemp(prefix="ocn_tests_lerobot_home_")
 DIAL_REPO_ID = "local/dial_ocn_test"
 
 
@@ -142,7 +148,7 @@ def ocn_checkpoint(craft_dataset, tmp_path_factory) -> Path:
         for weight in policy.core.controller.parameters():
             weight.mul_(10.0)
 
-    config = OCNConfig(device="cpu", hidden_size=16, mlp_hidden_size=16, n_options=3, window_size=24, temperature=1.0)
+    config = OCNConfig(device="cpu", hidden_size=16, mlp_hidden_size=16, n_options=3, temperature=1.0)
     return untrained_checkpoint(config, craft_dataset, tmp_path_factory.mktemp("ocn") / "pretrained_model", sharpen)
 
 
@@ -150,5 +156,5 @@ def ocn_checkpoint(craft_dataset, tmp_path_factory) -> Path:
 def compile_checkpoint(craft_dataset, tmp_path_factory) -> Path:
     """3 steps of `lerobot-train --policy.type=compile` (4 concrete latents) on `craft_dataset`."""
     out = tmp_path_factory.mktemp("compile_train") / "train"
-    flags = ("--policy.hidden_size=16", "--policy.latent_dim=4", "--policy.window_size=24")
+    flags = ("--policy.hidden_size=16", "--policy.latent_dim=4")
     return train_on_craft("compile", craft_dataset, out, 3, *flags)

@@ -31,7 +31,7 @@ STATE_DIM = 5
 def make_policy(action_type: str = "discrete", action_dim: int = 1, **overrides) -> CompILEPolicy:
     settings = dict(
         device="cpu", obs_encoder="identity", action_type=action_type, n_actions=4, n_segments=3, latent_dim=3,
-        hidden_size=8, window_size=6, tasks=list(TASKS),
+        hidden_size=8, tasks=list(TASKS),
         input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (STATE_DIM,))},
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (action_dim,))},
     )

@@ -122,7 +122,7 @@ def test_a_decoder_pool_needs_one_step_options():
     from policies.ocn import OCNConfig
 
     with pytest.raises(ValueError, match="need hierarchy='moe' and n_options a multiple of decoder_latents"):
-        OCNConfig(device="cpu", n_options=6, decoder_latents=4, hierarchy="moe")
+        OCNConfig(device="cpu", recipe="paper", n_options=6, decoder_latents=4, hierarchy="moe")
     with pytest.raises(ValueError, match="got 'ocn' and 4"):
-        OCNConfig(device="cpu", n_options=4, decoder_latents=4)
+        OCNConfig(device="cpu", recipe="paper", n_options=4, decoder_latents=4)
     assert OCNConfig(device="cpu", n_options=8, decoder_latents=4, hierarchy="moe").decoder_latents == 4

@@ -13,6 +13,7 @@ from policies.ocn import OCNConfig, OCNPolicy
 from tools.craft_rollouts import craft_world
 from tools.worlds import craft
 from tools.rollouts import free_run_success, option_subtask_success, oracle_controller_success
+from conftest import CRAFT_STATE
 
 TASK = "get wood, get iron"
 CRAFT = craft_world("paper")
@@ -26,7 +27,8 @@ def identity(x):
 def make_policy(**overrides) -> OCNPolicy:
     torch.manual_seed(0)
     config = OCNConfig(
-        device="cpu", hidden_size=8, mlp_hidden_size=8, n_options=2, tasks=[TASK], inference_mode="greedy",
+        device="cpu", recipe="paper", hidden_size=8, mlp_hidden_size=8, n_options=2, tasks=[TASK],
+        inference_mode="greedy", **CRAFT_STATE,
         input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))},
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))}, **overrides,
     )

@@ -11,6 +11,7 @@ shared by the module.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -33,7 +34,6 @@ from ocn_data.mcap_log import read_mcap_messages
 from policies.ocn import OCNConfig, OCNPolicy
 from policies.ocn.encoders import DialKeyEncoder
 from policies.ocn.processor_ocn import make_ocn_pre_post_processors
-from policies.sequence import training_windows
 from tools.dial_rollouts import DIAL_WORLD
 from tools.rollouts import free_run_success, option_subtask_success
 from rrd_reading import forward_fill, read_rrd, values
@@ -44,64 +44,61 @@ from tools.view_scenes import DialScene
 from conftest import DIAL_REPO_ID, run_cli
 
 REPO_ID = DIAL_REPO_ID
-STEPS = 3
-# Recorded episodes are about 40-140 frames long: windows of 64 make some of them "long episodes".
-WINDOW = 64
-DIAL = {"obs_encoder": "identity", "action_type": "continuous", "hidden_size": 16, "mlp_hidden_size": 16}
+STEPS = 5
+SMALL = {"hidden_size": 16, "mlp_hidden_size": 16}
 
 
 @pytest.fixture(scope="module")
 def trained(dial_dataset) -> Path:
-    """The `pretrained_model` folder of a few `lerobot-train` steps of 2-option OCN on `dial_dataset`."""
+    """The `pretrained_model` folder of a few steps of plain `lerobot-train --policy.type=ocn` on
+    `dial_dataset`: the policy takes Dial's recipe from the continuous actions, by itself."""
     base = dial_dataset.parent
-    run_cli(
+    proc = run_cli(
         "lerobot-train", "--policy.type=ocn", f"--dataset.repo_id={REPO_ID}", f"--dataset.root={dial_dataset}",
         "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false", "--env_eval_freq=0",
-        f"--steps={STEPS}", "--batch_size=4", "--num_workers=0", "--policy.n_options=2",
-        *[f"--policy.{key}={value}" for key, value in DIAL.items()],
-        f"--policy.window_size={WINDOW}", "--policy.skip_long_episodes=true", "--policy.inference_mode=greedy",
-        "--policy.lr_schedule=step", f"--policy.lr_decay_step={STEPS - 1}", f"--output_dir={base / 'train'}",
+        f"--steps={STEPS}", "--batch_size=4", "--num_workers=0", "--log_freq=1",
+        *[f"--policy.{key}={value}" for key, value in SMALL.items()], f"--output_dir={base / 'train'}",
         cwd=base,
     )
+    (base / "train.log").write_text(proc.stdout + proc.stderr)
     return base / "train" / "checkpoints" / f"{STEPS:06d}" / "pretrained_model"
 
 
-def _windows(root: Path, config: OCNConfig) -> dict:
-    """Every training window of the dataset as one batch, as LeRobot's loader builds them."""
-    offsets = [i / 25 for i in config.observation_delta_indices]
-    dataset = LeRobotDataset(REPO_ID, root=root, delta_timestamps={OBS_STATE: offsets, ACTION: offsets})
-    return next(iter(torch.utils.data.DataLoader(dataset, batch_size=len(dataset))))
-
-
-def _lengths(root: Path) -> np.ndarray:
-    return np.asarray(LeRobotDatasetMetadata(REPO_ID, root=root).episodes["length"])
-
-
 def _policy(root: Path, **overrides) -> tuple[OCNPolicy, LeRobotDatasetMetadata]:
-    """A 3-option Dial OCN built from the dataset's metadata, as `lerobot-train` builds it."""
+    """A small Dial OCN built from the dataset's metadata, as `lerobot-train` builds it (the paper's
+    loss unless `overrides` say otherwise, so that no affine fit runs)."""
     torch.manual_seed(0)
     meta = LeRobotDatasetMetadata(REPO_ID, root=root)
-    settings = {**DIAL, "window_size": int(_lengths(root).max()), **overrides}
-    config = OCNConfig(device="cpu", n_options=3, **settings)
+    config = OCNConfig(device="cpu", **{"recipe": "paper", "n_options": 3, **SMALL, **overrides})
     return make_policy(config, ds_meta=meta), meta
 
 
-def test_gaussian_mixture_nll_on_dial_windows(dial_dataset):
-    policy, meta = _policy(dial_dataset)
-    preprocessor, _ = make_ocn_pre_post_processors(policy.config, meta.stats)
-    raw = _windows(dial_dataset, policy.config)
-    batch = preprocessor(raw)
-    stats = meta.stats[ACTION]
-    expected_action = (raw[ACTION] - torch.as_tensor(stats["mean"])) / torch.as_tensor(stats["std"])
-    torch.testing.assert_close(batch[ACTION], expected_action.float(), rtol=1e-5, atol=1e-5)
+def one_frame_per_episode(root: Path) -> dict:
+    """A LeRobot batch of one sampled frame of every episode (the policy reads their whole episodes)."""
+    meta = LeRobotDatasetMetadata(REPO_ID, root=root)
+    frames = LeRobotDataset(REPO_ID, root=root)
+    firsts = [int(index) + 1 for index in meta.episodes["dataset_from_index"]]
+    return torch.utils.data.default_collate([frames[index] for index in firsts])
 
-    loss, info = policy.forward(batch)
-    lengths = _lengths(dial_dataset)
-    assert info["frames_used"] == int((lengths**2).sum())  # every window holds its whole episode
+
+def test_gaussian_mixture_nll_on_whole_dial_episodes(dial_dataset):
+    policy, meta = _policy(dial_dataset, obs_encoder="identity")
+    policy.eval()  # every episode, both splits
+    mask, state, action, tasks, _ = policy.training_windows(one_frame_per_episode(dial_dataset))
+    episodes = load_episodes(dial_dataset, split_episodes(dial_dataset, "all"))
+    stats = meta.stats[ACTION]
+    mean, std = torch.as_tensor(stats["mean"]), torch.as_tensor(stats["std"])
+    expected_action = (torch.from_numpy(episodes.action) - mean) / std
+    torch.testing.assert_close(action[mask], expected_action[torch.from_numpy(episodes.mask)].float(),
+                               rtol=1e-5, atol=1e-5)
+    policy.train()
+    loss, info = policy.forward(one_frame_per_episode(dial_dataset))
+    train_lengths = episodes.lengths[list(split_episodes(dial_dataset, "train"))]
+    assert info["frames_used"] == int(train_lengths.sum())  # the train split's whole episodes
 
     # The same NLL from torch.distributions, over the core's per-step mixture of 2N Gaussians.
-    mask, state, action = training_windows(policy.config, batch)
-    out = policy._unroll(state, batch["task"])
+    mask, state, action, tasks, _ = policy.training_windows(one_frame_per_episode(dial_dataset))
+    out = policy._unroll(state, tasks)
     mean, log_std = out.params.chunk(2, dim=-1)
     log_std = log_std.clamp(policy.config.log_std_min, policy.config.log_std_max)
     components = Independent(Normal(mean.permute(2, 0, 1, 3), log_std.exp().permute(2, 0, 1, 3)), 1)
@@ -113,32 +110,17 @@ def test_gaussian_mixture_nll_on_dial_windows(dial_dataset):
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in policy.parameters())
 
 
-def test_craft_defaults_on_dial_data_name_the_dial_flags(dial_dataset):
+def test_plain_defaults_on_dial_data_take_the_dial_recipe(dial_dataset):
     meta = LeRobotDatasetMetadata(REPO_ID, root=dial_dataset)
-    with pytest.raises(ValueError, match="obs_encoder=identity"):
-        make_policy(OCNConfig(device="cpu", window_size=400), ds_meta=meta)
-    with pytest.raises(ValueError, match="action_type=continuous"):
-        make_policy(OCNConfig(device="cpu", window_size=400, obs_encoder="identity"), ds_meta=meta)
-
-
-def test_long_episodes_train_on_their_first_window(dial_dataset):
-    lengths = _lengths(dial_dataset)
-    window = int(np.median(lengths))
-    assert lengths.min() < window <= lengths.max()
-    with pytest.raises(ValueError, match="skip_long_episodes"):
-        _policy(dial_dataset, window_size=window)
-    policy, meta = _policy(dial_dataset, window_size=window, skip_long_episodes=True)
-    preprocessor, _ = make_ocn_pre_post_processors(policy.config, meta.stats)
-    batch = preprocessor(_windows(dial_dataset, policy.config))
-    loss, info = policy.forward(batch)
-    per_window, _ = policy.forward(batch, reduction="none")
-    short, long = lengths[lengths < window], lengths[lengths >= window]
-    # A long episode keeps its windows sampled at frames 0 .. window-2: each starts the episode and
-    # trains on its first `window` frames. Its later windows might start mid-episode and are left out.
-    assert info["frames_used"] == int((short**2).sum()) + len(long) * (window - 1) * window
-    kept = per_window != 0
-    assert kept.sum() == short.sum() + len(long) * (window - 1) and len(per_window) == lengths.sum()
-    torch.testing.assert_close(loss, per_window[kept].mean())
+    config = OCNConfig(device="cpu", **SMALL)
+    config.input_features, config.output_features = {}, {}
+    config.resolve_from_dataset(meta)
+    assert (config.recipe, config.obs_encoder, config.action_type, config.n_options) == (
+        "dial", "dial_keys", "continuous", 4)
+    assert config.normalization_mapping == {"STATE": NormalizationMode.IDENTITY, "ACTION": NormalizationMode.MEAN_STD}
+    paper = OCNConfig(device="cpu", recipe="paper")
+    paper.resolve_from_dataset(meta)
+    assert (paper.recipe, paper.obs_encoder, paper.n_options) == ("paper", "identity", 3)
 
 
 def test_select_action_returns_unnormalised_torques(dial_dataset):
@@ -161,13 +143,18 @@ def test_select_action_returns_unnormalised_torques(dial_dataset):
 def test_lerobot_train_checkpoint_reloads_and_runs_in_lerobot_eval(trained):
     policy = OCNPolicy.from_pretrained(trained)
     assert sorted(policy.config.tasks) == ["press 1, press 2", "press 2, press 1"]
-    assert (policy.config.obs_encoder, policy.config.action_type,
-            policy.config.n_options) == ("identity", "continuous", 2)
-    assert policy.config.normalization_mapping == {"STATE": "MEAN_STD", "ACTION": "MEAN_STD"}
-    # lerobot-train built the step schedule from the preset and saved it where a resumed run reads it.
-    assert json.loads((trained / "train_config.json").read_text())["scheduler"]["type"] == "step_decay"
+    assert (policy.config.recipe, policy.config.obs_encoder, policy.config.action_type,
+            policy.config.n_options) == ("dial", "dial_keys", "continuous", 4)
+    assert policy.config.normalization_mapping == {"STATE": "IDENTITY", "ACTION": "MEAN_STD"}
+    # lerobot-train built the phase clock from the preset and saved it where a resumed run reads it; the
+    # taught phase ran first, then the final fifth (1 of 5 steps) trained the paper's loss at a 0.03x lr.
+    assert json.loads((trained / "train_config.json").read_text())["scheduler"]["type"] == "ocn_phases"
     scheduler = json.loads((trained.parent / "training_state" / "scheduler_state.json").read_text())
-    assert scheduler["last_epoch"] == STEPS and scheduler["_last_lr"] == pytest.approx([1e-4, 1e-4])
+    assert scheduler["last_epoch"] == STEPS and scheduler["_last_lr"] == pytest.approx([3e-5])
+    log = (trained.parents[3] / "train.log").read_text()
+    steps = re.findall(r"step:\d+ .*", log)
+    assert len(steps) == STEPS and "final_phase:1.000" in steps[-1] and "final_phase" not in "".join(steps[:-1])
+    assert all(float(re.search(r"choice_ce:([0-9.]+)", line).group(1)) > 0 for line in steps[:-1])
     out = trained.parents[3] / "eval"
     # --eval.recording writes the rollout as a dataset instead of rendering videos, so no OpenGL is needed.
     run_cli(
@@ -181,35 +168,6 @@ def test_lerobot_train_checkpoint_reloads_and_runs_in_lerobot_eval(trained):
     assert 0.0 <= info["overall"]["avg_sum_reward"] <= 2.0
 
 
-def test_lerobot_train_on_the_dial_packed_view_normalises_its_columns_and_runs_in_lerobot_eval(dial_dataset):
-    """The packed view serves Dial's standardised states: its checkpoint's preprocessor carries the
-    packed-column normaliser, and stock lerobot-eval loads that pipeline and runs the policy."""
-    from ocn_data.packed_view import packed_view
-
-    width = int(_lengths(dial_dataset).max())
-    view = packed_view(dial_dataset, REPO_ID, width)
-    base = dial_dataset.parent / "packed"
-    run_cli(
-        "lerobot-train", "--policy.type=ocn", f"--dataset.repo_id={REPO_ID}", f"--dataset.root={view}",
-        "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false", "--env_eval_freq=0",
-        "--steps=2", "--batch_size=4", "--num_workers=0", "--policy.n_options=2",
-        *[f"--policy.{key}={value}" for key, value in DIAL.items()],
-        f"--policy.window_size={width}", "--policy.window_start=packed", "--policy.inference_mode=greedy",
-        f"--output_dir={base / 'train'}",
-        cwd=dial_dataset.parent,
-    )
-    checkpoint = base / "train" / "checkpoints" / "000002" / "pretrained_model"
-    steps = json.loads((checkpoint / "policy_preprocessor.json").read_text())["steps"]
-    assert [step["registry_name"] for step in steps][-2:] == ["normalizer_processor", "ocn_packed_episode_normalizer"]
-    run_cli(
-        "lerobot-eval", f"--policy.path={checkpoint}", "--env.type=dial", "--env.task=12", "--eval.n_episodes=1",
-        "--eval.batch_size=1", "--env.max_steps=20", "--eval.recording=true", "--policy.device=cpu",
-        f"--output_dir={base / 'eval'}",
-        cwd=dial_dataset.parent,
-    )
-    assert json.loads((base / "eval" / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
-
-
 def test_dial_rollouts_of_the_trained_policy(trained):
     policy, preprocessor, postprocessor = load_ocn(trained)
     rates = free_run_success(
@@ -219,12 +177,12 @@ def test_dial_rollouts_of_the_trained_policy(trained):
     table = option_subtask_success(
         policy, preprocessor, postprocessor, DIAL_WORLD, ["1", "press 2"], episodes=1, seed=5
     )
-    assert table.success.shape == (2, 2) and np.isin(table.success, [0.0, 1.0]).all()
+    assert table.success.shape == (4, 2) and np.isin(table.success, [0.0, 1.0]).all()
     with torch.no_grad():  # options that terminate at once get one step: too short to reach a key
         policy.core.options.b_out[..., -1] = 50.0
         policy.core.options.w_out[..., -1] = 0.0
     table = option_subtask_success(policy, preprocessor, postprocessor, DIAL_WORLD, ["1", "2"], episodes=2, seed=5)
-    assert np.array_equal(table.success, np.zeros((2, 2))) and np.array_equal(table.stopped, np.ones((2, 2)))
+    assert np.array_equal(table.success, np.zeros((4, 2))) and np.array_equal(table.stopped, np.ones((4, 2)))
     with pytest.raises(ValueError, match="Unknown task"):
         free_run_success(policy, preprocessor, postprocessor, DIAL_WORLD, ["48"], episodes=1)
 
@@ -269,11 +227,12 @@ def test_dial_keys_encoder_sees_each_press_as_its_log_distance_crossing_zero(dia
 def test_ocn_with_the_dial_keys_encoder_trains_on_the_raw_state(dial_dataset):
     policy, meta = _policy(dial_dataset, obs_encoder="dial_keys")
     assert policy.config.normalization_mapping["STATE"] is NormalizationMode.IDENTITY
-    preprocessor, _ = make_ocn_pre_post_processors(policy.config, meta.stats)
-    raw = _windows(dial_dataset, policy.config)
-    batch = preprocessor(raw)
-    torch.testing.assert_close(batch[OBS_STATE], raw[OBS_STATE].float())
-    loss, _ = policy.forward(batch)
+    policy.eval()
+    mask, state, *_ = policy.training_windows(one_frame_per_episode(dial_dataset))
+    episodes = load_episodes(dial_dataset, split_episodes(dial_dataset, "all"))
+    torch.testing.assert_close(state[mask], torch.from_numpy(episodes.state[episodes.mask]).float())
+    policy.train()
+    loss, _ = policy.forward(one_frame_per_episode(dial_dataset))
     loss.backward()
     assert torch.isfinite(loss) and all(p.grad is not None and torch.isfinite(p.grad).all()
                                         for p in policy.parameters())
@@ -292,13 +251,13 @@ def test_ocn_eval_on_dial(trained, dial_dataset, tmp_path):
     assert result["world"] == "dial" and result["episodes_parsed"] == 5 and "not_applicable" not in result
     shape = result["parse_statistics"]
     assert shape["true_segments_per_episode"] == 2.0 and shape["segments_per_episode"] >= 1.0  # 2-digit PINs
-    assert len(shape["label_share"]) <= 2 and sum(shape["label_share"]) == pytest.approx(1.0, abs=1e-3)
+    assert len(shape["label_share"]) <= 4 and sum(shape["label_share"]) == pytest.approx(1.0, abs=1e-3)
     assert shape["boundary_offsets"]["boundaries"] == 5  # one inner boundary per 2-digit PIN
     assert "boundary_offsets_by_previous_action" not in shape  # 9 torques: no action to split by
     for key in ("f1_tol0", "f1_tol1", "align_acc", "nmi"):
         assert 0.0 <= result[key] <= 1.0, key
     table = result["option_subtask_success"]
-    assert sorted(table["subtasks"]) == ["1", "2"] and np.array(table["table"]).shape == (2, 2)  # digit columns
+    assert sorted(table["subtasks"]) == ["1", "2"] and np.array(table["table"]).shape == (4, 2)  # digit columns
     assert sorted(result["success_rate"]) == ["12", "21"]
     assert all(rate in (0.0, 0.5, 1.0) for rate in result["success_rate"].values())
     assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"

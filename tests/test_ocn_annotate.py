@@ -13,12 +13,12 @@ import torch
 from huggingface_hub import DatasetCard
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.collate import lerobot_collate_fn
-from lerobot.utils.constants import ACTION, OBS_STATE
 
 from envs.craft.world import SUBTASK_NAMES
 from ocn_data.episodes_table import load_episodes, split_episodes
 from ocn_data.record_demos import main as record_demos
 from tools import console_script
+from policies.ocn import OCNConfig
 from tools.episode_parsing import load_ocn, parse_episodes
 from tools.ocn_annotate import main as ocn_annotate
 
@@ -101,13 +101,17 @@ def test_adds_the_language_columns_to_a_dataset_without_them(ocn_checkpoint, tmp
     assert ds.meta.has_language_columns and all(frame_rows(ds, i) for i in range(ds.num_frames))
 
 
-def test_windowed_batch_trains_the_policy(annotated, ocn_checkpoint):
+def test_a_batch_of_the_annotated_dataset_trains_a_policy_built_from_it(annotated):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
     root, _, _ = annotated
-    policy, preprocessor, _ = load_ocn(ocn_checkpoint)
-    offsets = [i / 10 for i in policy.config.observation_delta_indices]
-    windows = LeRobotDataset(ANNOTATED_ID, root=root, delta_timestamps={OBS_STATE: offsets, ACTION: offsets})
-    assert windows[5]["language_persistent"] == LeRobotDataset(ANNOTATED_ID, root=root)[5]["language_persistent"]
-    loader = torch.utils.data.DataLoader(windows, batch_size=4, collate_fn=lerobot_collate_fn)  # lerobot-train's
+    meta = LeRobotDatasetMetadata(ANNOTATED_ID, root=root)
+    policy = make_policy(OCNConfig(device="cpu", recipe="paper", hidden_size=8, mlp_hidden_size=8), ds_meta=meta)
+    preprocessor, _ = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
+    frames = LeRobotDataset(ANNOTATED_ID, root=root)
+    assert "language_persistent" in frames[5]
+    loader = torch.utils.data.DataLoader(frames, batch_size=4, collate_fn=lerobot_collate_fn)  # lerobot-train's
     batch = next(iter(loader))
     policy.train()
     loss, stats = policy(preprocessor(batch))
@@ -121,7 +125,7 @@ def test_lerobot_train_runs_on_the_annotated_dataset(annotated, tmp_path):
         [console_script("lerobot-train"), "--policy.type=ocn", f"--dataset.repo_id={ANNOTATED_ID}",
          f"--dataset.root={root}", "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false",
          "--env_eval_freq=0", "--steps=2", "--batch_size=2", "--num_workers=0", "--policy.hidden_size=8",
-         "--policy.mlp_hidden_size=8", "--policy.window_size=24", f"--output_dir={tmp_path / 'train'}"],
+         "--policy.mlp_hidden_size=8", f"--output_dir={tmp_path / 'train'}"],
         capture_output=True, text=True, timeout=300, cwd=tmp_path,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -106,20 +106,8 @@ def test_pools_of_different_sizes_are_refused_with_the_field(ocn_checkpoint):
     first, _, _ = load_ocn(ocn_checkpoint)
     with pytest.raises(ValueError, match=r"hidden_size is 16 vs 8"):
         merge_option_pools([first, variant(ocn_checkpoint, seed=1, hidden_size=8)], [ADC])
-    with pytest.raises(ValueError, match=r"affine_options is False vs True"):
-        merge_option_pools([first, variant(ocn_checkpoint, seed=1, affine_options=True)], [ADC])
-
-
-def test_affine_options_stay_affine_in_the_pool(ocn_checkpoint):
-    affine = variant(ocn_checkpoint, seed=5, affine_options=True, option_mlp_hidden_size=8)
-    pool = merge_option_pools([affine, variant(ocn_checkpoint, seed=6, affine_options=True, option_mlp_hidden_size=8)],
-                              [ADC])
-    assert pool.config.affine_options and pool.core.options.w_x.shape[-1] == 8
-    x, h = torch.randn(2, 4, pool.encoder.out_dim), torch.zeros(pool.config.n_options, 4, pool.config.hidden_size)
-    with torch.no_grad():
-        ends = [torch.logit(pool.core.options(x[i], h).end) for i in range(2)]
-        mixed = torch.logit(pool.core.options(0.5 * x[0] + 0.5 * x[1], h).end)
-    torch.testing.assert_close(mixed, 0.5 * ends[0] + 0.5 * ends[1], rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match=r"mlp_depth is 2 vs 1"):
+        merge_option_pools([first, variant(ocn_checkpoint, seed=1, mlp_depth=1)], [ADC])
 
 
 def test_finetune_writes_the_curve_and_a_checkpoint_that_keeps_the_options(finetuned, ocn_checkpoint,

@@ -1,9 +1,7 @@
 """Tests of the OCN policy: cell, recurrence (eq. 8-17), loss, inference state, LeRobot plumbing."""
 
 import math
-import re
 
-import numpy as np
 import pytest
 import torch
 from torch.nn import functional as F

@@ -73,7 +73,8 @@ def test_policy_dry_run_holds_the_checkpoint_eval_and_model_card(ocn_checkpoint,
     card = ModelCard.load(out / "README.md")
     data = card.data
     assert (data.library_name, data.pipeline_tag, data.license) == ("lerobot", "robotics", "apache-2.0")
-    assert {"lerobot", "robotics", "ocn"} <= set(data.tags) and data.datasets == ["local/craft_small"]
+    # The eval's dataset is a local recording (local/craft_small), which names no Hub dataset: none is listed.
+    assert {"lerobot", "robotics", "ocn"} <= set(data.tags) and data.datasets is None
     result = json.loads(eval_json.read_text())
     metrics = {r.metric_name: r.metric_value for r in data.eval_results}
     assert data.model_name == "me/ocn-craft"
@@ -81,7 +82,7 @@ def test_policy_dry_run_holds_the_checkpoint_eval_and_model_card(ocn_checkpoint,
     assert metrics["NMI of options and subtasks"] == pytest.approx(result["nmi"])
     assert metrics["success rate: get wood, get iron"] == pytest.approx(result["success_rate"]["get wood, get iron"])
     text = card.text
-    for expected in ("--policy.path=me/ocn-craft", "pip install lerobot_policy_ocn", TRAIN_COMMAND, "| options | 3 |",
+    for expected in ("--policy.path=me/ocn-craft", "pip install ./lerobot_policy_ocn", TRAIN_COMMAND, "| options | 3 |",
                      "| hidden size (controller and option cells) | 16 |", "| controller temperature | 1.0 |",
                      "- `get iron, get grass`", "![option x subtask success](eval/ocn_eval.png)"):
         assert expected in text
@@ -93,14 +94,14 @@ def test_policy_card_reads_lerobot_train_config(ocn_checkpoint, tmp_path):
     for path in ocn_checkpoint.iterdir():
         (checkpoint / path.name).write_bytes(path.read_bytes())
     policy, _, _ = load_ocn(ocn_checkpoint)
-    TrainPipelineConfig(dataset=DatasetConfig(repo_id="local/craft_small"), policy=policy.config, steps=7,
+    TrainPipelineConfig(dataset=DatasetConfig(repo_id="me/craft_small"), policy=policy.config, steps=7,
                         batch_size=5, seed=11).save_pretrained(checkpoint)
     out = tmp_path / "dry"
     assert ocn_push(["policy", "--path", str(checkpoint), "--repo-id", "me/ocn", "--dry-run", str(out)]) == 0
     assert (out / "train_config.json").is_file()
     card = ModelCard.load(out / "README.md")
-    assert card.data.datasets == ["local/craft_small"] and card.data.eval_results is None
-    assert "dataset `local/craft_small`, 7 steps of batch size 5, seed 11" in card.text
+    assert card.data.datasets == ["me/craft_small"] and card.data.eval_results is None  # a Hub id is listed
+    assert "dataset `me/craft_small`, 7 steps of batch size 5, seed 11" in card.text
     assert "The training command was not recorded." in card.text
     assert "No `ocn-eval` results were published" in card.text
 

@@ -43,7 +43,6 @@ def make_policy(action_type: str = "discrete", action_dim: int = 1, **overrides)
         n_slots=N_SLOTS,
         hidden_size=8,
         cell_hidden_size=12,
-        window_size=6,
         tasks=list(TASKS),
         input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (STATE_DIM,))},
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (action_dim,))},

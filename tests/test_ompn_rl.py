@@ -24,6 +24,7 @@ from test_ppo import CRAFT, TASK, WoodAhead, wood_success_before_and_after
 from tools.ocn_finetune import main
 from tools.ompn_rl import TASK_EMBEDDING, MemoryActor, ompn_for_tasks
 from tools.ppo import PPOConfig, PPOTrainer, ValueHead, collect
+from conftest import CRAFT_STATE
 
 torch.set_num_threads(1)
 
@@ -34,7 +35,7 @@ def craft_ompn(tasks: list[str], hidden_size: int = 8) -> OMPNPolicy:
     """A small OMPN over Craft's states and actions, seeded weights."""
     torch.manual_seed(0)
     config = OMPNConfig(
-        device="cpu", hidden_size=hidden_size, cell_hidden_size=2 * hidden_size, tasks=tasks,
+        device="cpu", hidden_size=hidden_size, cell_hidden_size=2 * hidden_size, tasks=tasks, **CRAFT_STATE,
         input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (OBS_DIM,))},
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))},
     )
@@ -121,7 +122,7 @@ def test_ompn_learns_to_use_the_wood_it_faces_well_above_the_random_rate():
 
 @pytest.fixture(scope="module")
 def untrained_ompn(craft_dataset, tmp_path_factory) -> Path:
-    config = OMPNConfig(device="cpu", hidden_size=8, cell_hidden_size=16, window_size=24)
+    config = OMPNConfig(device="cpu", hidden_size=8, cell_hidden_size=16)
     return untrained_checkpoint(config, craft_dataset, tmp_path_factory.mktemp("ompn") / "pretrained_model")
 
 

@@ -12,6 +12,7 @@ from policies.ocn import OCNConfig, OCNPolicy
 from tools.ocn_finetune import primitive_action_pool
 from tools.craft_rollouts import craft_world
 from tools.ppo import Acting, Decisions, PPOConfig, PPOTrainer, collect, finetune, replay_controller, semi_mdp_gae
+from conftest import CRAFT_STATE
 
 torch.set_num_threads(1)
 
@@ -21,7 +22,8 @@ CRAFT = Acting(craft_world())  # policies built in memory: identity processors
 
 def craft_policy(n_options: int = 3, **overrides) -> OCNPolicy:
     settings = dict(
-        device="cpu", hidden_size=16, mlp_hidden_size=16, n_options=n_options, temperature=1.0, tasks=[TASK],
+        device="cpu", recipe="paper", hidden_size=16, mlp_hidden_size=16, n_options=n_options, temperature=1.0,
+        tasks=[TASK], **CRAFT_STATE,
         execution="hard", input_features={OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))},
         output_features={ACTION: PolicyFeature(FeatureType.ACTION, (1,))},
     )

@@ -21,6 +21,4 @@ if ! command -v ffmpeg >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 && 
         || echo "bootstrap: could not install ffmpeg; LeRobot falls back to PyAV for video" >&2
 fi
 
-# OCN_EXTRA names one optional extra to install too (CI sets OCN_EXTRA=babyai so that the BabyAI tests
-# run); a plain bootstrap installs the core only, and a later plain one removes the extra again.
-uv sync --frozen --python 3.12 ${OCN_EXTRA:+--extra "$OCN_EXTRA"}
+uv sync --frozen --python 3.12

@@ -105,9 +105,9 @@ NOT_SETTINGS = ("out", "resume", "threads")
 # `hierarchy` and the skill length it fixes too: MoE's and HIL's options were trained to run a fixed
 # number of steps (1 or `skill_length`) and never learned to terminate; the pool keeps that schedule.
 # compILE decoders' latents stack only with decoders of the same latent count and width.
-POOL_FIELDS = ("obs_encoder", "action_type", "n_actions", "hidden_size", "mlp_hidden_size", "mlp_depth",
-               "option_mlp_hidden_size", "option_mlp_depth", "affine_options", "log_std_min", "log_std_max",
-               "hierarchy", "fixed_skill_length", "decoder_latents", "decoder_hidden_size", "normalization_mapping")
+POOL_FIELDS = ("obs_encoder", "action_type", "n_actions", "hidden_size", "mlp_hidden_size", "mlp_depth", "log_std_min",
+               "log_std_max", "hierarchy", "fixed_skill_length", "decoder_latents", "decoder_hidden_size",
+               "normalization_mapping")
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -242,7 +242,8 @@ def primitive_action_pool(tasks: Sequence[str], hidden_size: int, temperature: f
     from lerobot.utils.constants import ACTION, OBS_STATE
 
     config = OCNConfig(
-        device="cpu", n_options=N_ACTIONS, n_actions=N_ACTIONS, hidden_size=hidden_size, mlp_hidden_size=hidden_size,
+        device="cpu", recipe="paper", obs_encoder="craft", action_type="discrete", n_options=N_ACTIONS,
+        n_actions=N_ACTIONS, hidden_size=hidden_size, mlp_hidden_size=hidden_size,
         temperature=FRESH_CONTROLLER_TEMPERATURE if temperature is None else temperature, tasks=list(tasks),
         hierarchy="moe",
         execution="hard", inference_mode="sample",
@@ -273,8 +274,9 @@ def compile_latent_options(policy: CompILEPolicy, name: str) -> OCNPolicy:
         )
     shared = {field.name: getattr(config, field.name) for field in dataclasses.fields(SequenceConfig)}
     options = OCNPolicy(OCNConfig(
-        **shared, n_options=config.latent_dim, hidden_size=config.hidden_size, mlp_hidden_size=config.hidden_size,
-        temperature=1.0, hierarchy="moe", decoder_latents=config.latent_dim, decoder_hidden_size=config.hidden_size,
+        **shared, recipe="paper", n_options=config.latent_dim, hidden_size=config.hidden_size,
+        mlp_hidden_size=config.hidden_size, temperature=1.0, hierarchy="moe", decoder_latents=config.latent_dim,
+        decoder_hidden_size=config.hidden_size,
     ))
     options.core.options.load_decoder(0, policy.decoder_obs, policy.decoder_latent, policy.decoder_out)
     return options.eval()

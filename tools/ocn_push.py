@@ -169,7 +169,8 @@ def model_card(path: Path, repo_id: str, result: dict[str, Any] | None, train_co
         library_name="lerobot",
         pipeline_tag="robotics",
         tags=list(POLICY_TAGS) + (["craft"] if config.obs_encoder in CRAFT_ENCODERS else []),
-        datasets=[dataset] if dataset else None,
+        # A dataset recorded here and never pushed keeps a local/... id, which names no Hub dataset.
+        datasets=[dataset] if dataset and not dataset.startswith("local/") else None,
         model_name=repo_id,
         eval_results=eval_results(result) if result else None,
     )
@@ -187,8 +188,8 @@ def model_card(path: Path, repo_id: str, result: dict[str, Any] | None, train_co
         "state_dim": config.state_dim,
         "obs_encoder": config.obs_encoder,
         "action": action,
-        "window_size": config.window_size,
-        "window_start": config.window_start,
+        "recipe": config.recipe,
+        "longest_episode": config.window_size,
         "inference_mode": config.inference_mode,
         "parameters": f"{sum(p.numel() for p in policy.parameters()):,}",
     }

@@ -246,7 +246,7 @@ class CompILEPolicy(SequencePolicy, PreTrainedPolicy):
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """compILE's loss: per episode window, then the mean over windows with real frames (reduction
         "none": per window [B]). Relaxed samples in training mode, argmax ones in eval mode."""
-        mask, state, action, _ = self.training_windows(batch)
+        mask, state, action, _, _ = self.training_windows(batch)
         out = self._run(state, action, mask, hard=not self.training)
         per_window, terms = compile_loss(out, mask, self.config)
         frames = mask.sum(1)

@@ -294,7 +294,7 @@ class OCNCore(nn.Module):
         [T, B] marks the steps where it was chosen (True at t = 0). There the controller steps and the
         option restarts from h^o_0; elsewhere the controller keeps its state and the option continues.
         This is eq. 17 with e_t and p^c set to one-hot ground truth, for training on labelled segments
-        (`tools.fast_imitation --supervise-options`: what the model can do when the split is given).
+        (`labelled_forward`: the Dial recipe teaches a split found without labels this way).
         MoE's one-step options take a choice at every step (`decided` all True); other fixed-length
         options (HIL) have no terminations to teach and are refused."""
         one_step = self.skill_length == 1

@@ -127,7 +127,7 @@ class OMPNPolicy(SequencePolicy, PreTrainedPolicy):
 
     def forward(self, batch: dict[str, Any], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """NLL of the actions: mean over each window's real frames, then over windows."""
-        mask, state, action, tasks = self.training_windows(batch)
+        mask, state, action, tasks, _ = self.training_windows(batch)
         out = self._unroll(state, mask, tasks)
         depth = expected_depth(out.expansion)
         return window_nll(self._action_log_prob(out.params, action), mask, reduction, {"mean_depth": depth})
