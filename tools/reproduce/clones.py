@@ -8,7 +8,8 @@ with the same seed and size find one run: `imitation-s1`'s main variant is `s1`'
 
 The size of a study (episodes per task, steps, batch) is on its command line; the defaults are the
 issue's budget for Craft: 2,000 demonstrations per task, 6,000 steps of 128 episodes. A workdir
-holds one size: a run of another size in the same folder is refused (`runs.Job`).
+holds one size: a run of another size in the same folder is refused (`runs.Job`). A clone's scores
+(`ocn-eval` on the validation split) live in its folder too, `.../eval`.
 """
 
 from __future__ import annotations
@@ -18,7 +19,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tools.reproduce.runs import Recording, Training, train_command
+from tools.reproduce.runs import Evaluation, Recording, Training, train_command
+
+# What a clone's row keeps of `ocn-eval`'s JSON, beside the option table and its reading.
+EVAL_KEYS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "mean_success_rate", "success_rate")
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,20 @@ def clone(workdir: Path, demos: Demos, data: Recording, model: Model, seed: int,
     command = train_command(model.policy_type, data.root, demos.repo_id, folder, size.steps, size.batch_size, seed,
                             model.flags)
     return Training(workdir, folder, command).run()
+
+
+def scored(workdir: Path, demos: Demos, data: Recording, trained: Training, rollouts: int) -> dict[str, Any]:
+    """A clone's row in a study's results: its commands, training wall seconds and `ocn-eval`'s scores on
+    its recording's validation split (scored unless done), with the option x subtask table read
+    (`option_table_summary`: each subtask's best option, the diagonal, the off-diagonal)."""
+    from tools.parsing_metrics import option_table_summary
+
+    job = Evaluation(workdir, f"{trained.folder}/eval", trained.checkpoint, data.root, demos.repo_id, rollouts).run()
+    scores = job.scores()
+    table = scores["option_subtask_success"]
+    return {"train_command": trained.shown, "train_wall_s": trained.wall_s, "eval_command": job.shown,
+            "scores": {**{key: scores[key] for key in EVAL_KEYS}, "option_table": table,
+                       **option_table_summary(table["table"])}}
 
 
 def add_size_arguments(parser: argparse.ArgumentParser, size: Size, seeds: str = "1,2,3") -> None:

@@ -47,11 +47,10 @@ from typing import Any
 
 from tools.bench import RESULTS
 from tools.reproduce import curves, finetune
-from tools.reproduce.clones import Demos, Size, clone, record, size_of
+from tools.reproduce.clones import Demos, Size, clone, record, scored, size_of
 from tools.reproduce.finetune import CLONED, Setting, add_ppo_arguments, budget_table, finetune_run, summarise
 from tools.reproduce.report import (check, checks_table, mean_std, origin_words, provenance, rates_cell, seconds_cell,
                                     write_results)
-from tools.reproduce.runs import Evaluation, Recording, Training
 
 SIZE = Size(episodes_per_task=500, steps=5000, batch_size=32)
 ROLLOUTS = 100
@@ -81,20 +80,6 @@ def split_report(data: Path) -> dict[str, Any] | None:
     the digits, read for the report only), shown above the checks. `policies.ocn.taught` will give it;
     until then the results hold none."""
     return None
-
-
-def imitation_row(args: argparse.Namespace, recording: Demos, data: Recording, trained: Training,
-                  seed: int) -> dict[str, Any]:
-    """`ocn-eval` of OCN's clone of one seed: its row in the imitation table."""
-    from tools.parsing_metrics import option_table_summary
-
-    job = Evaluation(args.workdir, f"{trained.folder}/eval", trained.checkpoint, data.root, recording.repo_id,
-                     args.rollouts).run()
-    scores = job.scores()
-    table = scores["option_subtask_success"]["table"]
-    return {"seed": seed, "train_command": trained.shown, "train_wall_s": trained.wall_s, "eval_command": job.shown,
-            "scores": {**{key: scores[key] for key in SCORES if key in scores}, "success_rate": scores["success_rate"],
-                       **option_table_summary(table)}}
 
 
 def checks(imitation: list[dict[str, Any]], summary: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
@@ -193,7 +178,7 @@ def reproduce(args: argparse.Namespace) -> int:
             if method == "ocn":
                 model = CLONED["ocn"].with_flags(**setting.clone_flags)
                 trained = clone(args.workdir, setting.demos[0], data, model, seed, size_of(args))
-                imitation.append(imitation_row(args, setting.demos[0], data, trained, seed))
+                imitation.append({"seed": seed, **scored(args.workdir, setting.demos[0], data, trained, args.rollouts)})
             for reward in args.rewards:
                 runs.append(finetune_run(args, setting, method, reward, seed))
                 result = {**provenance(args.argv, settings), "split_report": split_report(args.workdir / data.root),

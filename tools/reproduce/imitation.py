@@ -32,10 +32,11 @@ from pathlib import Path
 from typing import Any
 
 from tools.bench import RESULTS
-from tools.reproduce.clones import Demos, Model, Size, add_size_arguments, clone, record, seed_list, size_of
+from tools.reproduce.clones import (Demos, Model, Size, add_size_arguments, clone, record, scored, seed_list,
+                                    size_of)
 from tools.reproduce.report import (check, checks_table, mean_std, origin_words, provenance, rates_cell, seconds_cell,
                                     write_results)
-from tools.reproduce.runs import Evaluation, Recording
+from tools.reproduce.runs import Recording
 
 STUDY = "imitation_s1"
 S1 = Demos("craft_s1", ("--tasks", "AC,CD,DA"))
@@ -47,8 +48,6 @@ VARIANTS = {
     "T1": Model("3 options, T=1", flags={"temperature": 1}),
 }
 METRICS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "mean_success_rate", "diagonal_mean")
-# What a run keeps of ocn-eval's JSON, beside the option table and its reading.
-EVAL_KEYS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "mean_success_rate", "success_rate")
 # For `ocn-reproduce combine`: the study this module makes, its rows with the fields that name one, and
 # the settings that may differ between the files it joins (which runs each invocation made, and where).
 STUDIES = (STUDY,)
@@ -56,24 +55,10 @@ ROWS = {"runs": ("variant", "seed")}
 VARYING = ("seeds", "ablation_seeds", "variants", "workdir", "results")
 
 
-def evaluate(workdir: Path, data: str, run_folder: str, checkpoint: str,
-             rollouts: int) -> tuple[Evaluation, dict[str, Any]]:
-    """`ocn-eval` of a clone on S1's validation split, with its option table read (`option_table_summary`)."""
-    from tools.parsing_metrics import option_table_summary
-
-    job = Evaluation(workdir, f"{run_folder}/eval", checkpoint, data, S1.repo_id, rollouts).run()
-    scores = job.scores()
-    table = scores["option_subtask_success"]
-    return job, {**{key: scores[key] for key in EVAL_KEYS}, "option_table": table,
-                 **option_table_summary(table["table"])}
-
-
 def run_variant(args: argparse.Namespace, data: Recording, variant: str, seed: int) -> dict[str, Any]:
     """Train (or reuse) and score one seed of one variant: its row in the results."""
     trained = clone(args.workdir, S1, data, VARIANTS[variant], seed, size_of(args))
-    scored, scores = evaluate(args.workdir, data.root, trained.folder, trained.checkpoint, args.rollouts)
-    return {"variant": variant, "seed": seed, "train_command": trained.shown, "train_wall_s": trained.wall_s,
-            "eval_command": scored.shown, "scores": scores}
+    return {"variant": variant, "seed": seed, **scored(args.workdir, S1, data, trained, args.rollouts)}
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
