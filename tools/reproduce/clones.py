@@ -95,7 +95,7 @@ def scored(workdir: Path, demos: Demos, data: Recording, trained: Training, roll
 
 def add_size_arguments(parser: argparse.ArgumentParser, size: Size, seeds: str = "1,2,3") -> None:
     """The options every study has: its size, seeds and folders."""
-    parser.add_argument("--seeds", type=seed_list, default=seed_list(seeds), help="comma-separated seeds")
+    parser.add_argument("--seeds", type=seed_list, default=seeds, help="comma-separated seeds")
     parser.add_argument("--episodes-per-task", type=int, default=size.episodes_per_task,
                         help="demonstrations recorded per task (80/20 train/val split)")
     parser.add_argument("--steps", type=int, default=size.steps, help="lerobot-train steps per clone")

@@ -265,9 +265,9 @@ def add_ppo_arguments(parser: argparse.ArgumentParser, setting: Setting, size: S
     add_size_arguments(parser, size)
     parser.add_argument("--frames", type=int, default=setting.frames, help="env frames per PPO run")
     parser.add_argument("--envs", type=int, default=setting.envs, help="envs per PPO iteration")
-    parser.add_argument("--rewards", type=lambda text: text.split(","), default=list(REWARDS),
-                        help="comma-separated: sparse,dense")
-    parser.add_argument("--methods", type=lambda text: text.split(","), default=list(setting.methods),
+    parser.add_argument("--rewards", type=lambda text: text.split(","), default=",".join(REWARDS),
+                        help="comma-separated, of sparse,dense")
+    parser.add_argument("--methods", type=lambda text: text.split(","), default=",".join(setting.methods),
                         help=f"comma-separated, of {','.join(setting.methods)}")
 
 

@@ -220,8 +220,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     parser = sub.add_parser("imitation-s1", help="OCN imitation on S1 with the paper's ablations",
                             description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     add_size_arguments(parser, SIZE)
-    parser.add_argument("--ablation-seeds", type=seed_list, default=[1], help="comma-separated seeds of each ablation")
-    parser.add_argument("--variants", type=lambda text: text.split(","), default=list(VARIANTS),
+    parser.add_argument("--ablation-seeds", type=seed_list, default="1", help="comma-separated seeds of each ablation")
+    parser.add_argument("--variants", type=lambda text: text.split(","), default=",".join(VARIANTS),
                         help=f"comma-separated, of {','.join(VARIANTS)}")
     parser.add_argument("--rollouts", type=int, default=200, help="ocn-eval env episodes per task and per table cell")
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of imitation_s1.{json,md,png}")
