@@ -93,9 +93,9 @@ def scored(workdir: Path, demos: Demos, data: Recording, trained: Training, roll
                        **option_table_summary(table["table"])}}
 
 
-def add_size_arguments(parser: argparse.ArgumentParser, size: Size, seeds: str = "1,2,3") -> None:
-    """The options every study has: its size, seeds and folders."""
-    parser.add_argument("--seeds", type=seed_list, default=seeds, help="comma-separated seeds")
+def add_size_arguments(parser: argparse.ArgumentParser, size: Size) -> None:
+    """The options every study has: its size, seeds (1, 2, 3 by default) and folders."""
+    parser.add_argument("--seeds", type=seed_list, default="1,2,3", help="comma-separated seeds")
     parser.add_argument("--episodes-per-task", type=int, default=size.episodes_per_task,
                         help="demonstrations recorded per task (80/20 train/val split)")
     parser.add_argument("--steps", type=int, default=size.steps, help="lerobot-train steps per clone")
