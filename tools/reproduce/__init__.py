@@ -1,14 +1,12 @@
-"""`ocn-reproduce`: the paper's experiments end to end, from recording to the committed results.
+"""`ocn-reproduce`: the paper's experiments from plain commands, each writing one results set with its checks.
 
-Each experiment is a subcommand in its own module: `imitation-s1` (skill induction and its
-ablations, `imitation.py`), `s1` and `s2` (finetuning over frozen skills against MoE, HIL and flat
-PPO, `finetune.py`), `parsing-s1` (how OCN and the baselines parse S1 over training, `parsing.py`),
-`dial` (skills cloned from 2-digit PINs, finetuned on 3-digit PINs against MoE, `dial.py`),
-`combine` (one finetuning or parsing study from the results files of several invocations,
-`combine.py`), and `gather` (one finetuning study from `ocn-finetune` folders run by hand,
-`gather.py`).
-What they share is in `runs.py` (recording, resumable `lerobot-train` runs) and `report.py` (the
-results files' provenance and checks table).
+`imitation-s1` (`imitation.py`): OCN's skill induction on Craft S1 and the paper's ablations.
+`s1`, `s2` (`finetune.py`): PPO over the cloned skills of OCN and the baselines on new tasks.
+`dial` (`dial.py`): skills cloned from 2-digit PINs, finetuned on 3-digit PINs against MoE.
+`combine` (`combine.py`): one study from the results of several invocations run side by side.
+Each study is made of plain `record_demos`, `lerobot-train`, `ocn-eval` and `ocn-finetune` commands
+(`runs.py`, `clones.py`), each run once in the workdir; the recipe is the policy's default, so no
+command carries a recipe flag. Nothing here imports torch or LeRobot until a study runs.
 """
 
 from __future__ import annotations
@@ -16,23 +14,22 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tools.reproduce import combine, dial, finetune, gather, imitation, parsing
+from tools.reproduce import combine, dial, finetune, imitation
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Every subcommand's command line."""
     parser = argparse.ArgumentParser(prog="ocn-reproduce", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="experiment", required=True)
+    sub = parser.add_subparsers(dest="command", required=True)
     imitation.add_parser(sub)
     finetune.add_parsers(sub)
-    parsing.add_parser(sub)
     dial.add_parser(sub)
     combine.add_parser(sub)
-    gather.add_parser(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
     args.argv = argv
     return args.func(args)
