@@ -132,8 +132,8 @@ def test_resume_appends_and_fresh_root_is_required(recorded, tmp_path):
     copy = tmp_path / "copy"
     subprocess.run(["cp", "-r", str(root), str(copy)], check=True)
     noisy = run_record("--tasks", "AC", "--episodes-per-task", "5", "--root", str(copy), "--repo-id", "local/test_s1",
-                       "--dart-noise", "0.1", "--resume", check=False)
-    assert noisy.returncode == 2 and "recorded with dart_noise 0.0, not 0.1" in noisy.stderr
+                       "--dart-noise", "0.3", "--resume", check=False)
+    assert noisy.returncode == 2 and "recorded with dart_noise 0.1, not 0.3" in noisy.stderr
     assert LeRobotDataset("local/test_s1", root=copy).num_episodes == 60
     run_record("--tasks", "AC", "--episodes-per-task", "5", "--root", str(copy), "--repo-id", "local/test_s1",
                "--seed", "3", "--resume")
@@ -249,9 +249,13 @@ def test_dart_noise_is_kept_in_the_provenance_and_the_card(tmp_path):
     assert dataset.meta.total_episodes == 5
     card = (root / "README.md").read_text()
     assert "DART noise 0.2" in card and "--dart-noise 0.2" in card
-    plain = tmp_path / "plain"
+    plain = tmp_path / "plain"  # record_demos' default noise, what OCN's Craft recipe was measured on
     run_record("--tasks", "AC", "--episodes-per-task", "5", "--root", str(plain), "--repo-id", "local/x")
-    assert "DART" not in (plain / "README.md").read_text()
+    assert "DART noise 0.1" in (plain / "README.md").read_text()
+    expert = tmp_path / "expert"
+    run_record("--tasks", "AC", "--episodes-per-task", "5", "--root", str(expert), "--repo-id", "local/x",
+               "--dart-noise", "0")
+    assert "DART" not in (expert / "README.md").read_text()
 
 
 def test_subtask_annotations_as_native_language_rows(tmp_path):
