@@ -121,7 +121,7 @@ def test_sigkill_at_each_commit_stage_loses_nothing_published_and_resume_repeats
     with pytest.raises(SystemExit) as refused:
         record_demos(recording(root, 5, "--resume", "--dart-noise", "0.3"))
     assert refused.value.code == 2
-    assert "recorded with dart_noise 0.0, not 0.3" in capsys.readouterr().err
+    assert "recorded with dart_noise 0.1, not 0.3" in capsys.readouterr().err
     check_consistent(root, episodes=first)
 
     # Killed with everything staged, before the swap: the dataset is as it was.
