@@ -490,6 +490,28 @@ def test_computing_only_real_frames_changes_no_output_read_and_no_gradient(hiera
     assert not only_real.p_c[~time_major].any()  # the frames after a row's end are not computed
 
 
+def test_craft_features_read_as_their_set_entries_give_the_dense_first_layers_loss_and_gradients():
+    from envs.craft import CraftEnv
+
+    craft_state = {OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))}
+    policy = make_policy(obs_encoder="craft", n_actions=5, input_features=craft_state)
+    states = torch.stack([torch.as_tensor(CraftEnv().reset(seed=seed)[0]) for seed in range(20)]).reshape(4, 5, 81)
+    batch = {**make_batch(), OBS_STATE: states}
+    batch[f"{ACTION}_is_pad"][1, 3:] = True
+    results = []
+    for sparse in (True, False):
+        policy.zero_grad(set_to_none=True)
+        if not sparse:
+            policy.encoder.sparse = lambda state: None  # the dense path the encoder's features take
+        loss, _ = policy(batch)
+        loss.backward()
+        results.append((loss.detach(), [p.grad.clone() for p in policy.parameters()]))
+    (sparse_loss, sparse_grads), (dense_loss, dense_grads) = results
+    torch.testing.assert_close(sparse_loss, dense_loss)
+    for got, expected in zip(sparse_grads, dense_grads, strict=True):
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
+
+
 def test_unroll_frames_names_rows_out_of_order():
     policy = make_policy()
     core = policy.core

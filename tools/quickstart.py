@@ -1,91 +1,94 @@
-"""`ocn-quickstart`: the small end-to-end job of the README.
+"""`ocn-quickstart`: the small end-to-end job of the README, which shows skills.
 
-Records a little Craft data with the expert (AC, CD, DA), reads it back with LeRobot, trains OCN
-briefly with `lerobot-train --policy.type=ocn`, scores it with `ocn-eval` (parsing metrics, option x
-subtask table, free-run success, the free runs logged to MCAP) and draws the model's options over
-20 validation episodes with `ocn-view` (a rerun .rrd file and a PNG). A brief run shows the loop
-working, not the paper's figures: those come from `ocn-reproduce imitation-s1`.
+Four plain commands, as a user would type them: `record_demos` (Craft's S1 tasks AC, CD and DA, with
+its default DART noise), `lerobot-train --policy.type=ocn` (no `--policy.*` flag: the policy's
+default recipe), `ocn-eval` (parsing scores against the subtasks, the option x subtask table, free-run
+success) and `ocn-view` (a rerun file and a PNG of the options over validation episodes). Then it
+prints the option x subtask table: each option, run alone, on each subtask.
+
+Its budget (`EPISODES_PER_TASK`, `STEPS`, `BATCH_SIZE`) is the smallest measured to induce the three
+skills in about four minutes on a 2-core machine (results/bench_quickstart.md); the paper-size run is
+`ocn-reproduce imitation-s1`.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
-
-import numpy as np
 
 from tools import console_script
 
+EPISODES_PER_TASK = 2000
+STEPS = 3000
+BATCH_SIZE = 128
+REPO_ID = "local/craft_quickstart"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="ocn-quickstart", description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--workdir", type=Path, default=Path("outputs/quickstart"),
+                        help="scratch folder, replaced on every run")
+    parser.add_argument("--seed", type=int, default=1, help="lerobot-train's seed")
+    parser.add_argument("--steps", type=int, default=STEPS, help="lerobot-train steps")
+    parser.add_argument("--episodes-per-task", type=int, default=EPISODES_PER_TASK)
+    return parser
+
+
+def commands(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
+    """The quickstart's commands, each with what it does, run in `--workdir`."""
+    return [
+        ("recording the expert's demonstrations", [
+            console_script("record_demos"), "--env", "craft", "--tasks", "AC,CD,DA", "--episodes-per-task",
+            str(args.episodes_per_task), "--root", "craft_demo", "--repo-id", REPO_ID, "--mcap", "craft_demo.mcap"]),
+        ("training OCN with lerobot-train", [
+            console_script("lerobot-train"), "--policy.type=ocn", "--policy.device=cpu", f"--dataset.repo_id={REPO_ID}",
+            "--dataset.root=craft_demo", f"--steps={args.steps}", f"--batch_size={BATCH_SIZE}", "--output_dir=train",
+            f"--seed={args.seed}", "--wandb.enable=false", "--policy.push_to_hub=false", f"--save_freq={args.steps}",
+            f"--log_freq={max(1, args.steps // 6)}"]),
+        ("scoring the options with ocn-eval", [
+            console_script("ocn-eval"), "--policy", "train/checkpoints/last/pretrained_model", "--root", "craft_demo",
+            "--repo-id", REPO_ID, "--out", "eval.json", "--rollouts", "50", "--mcap", "policy_runs.mcap"]),
+        ("drawing the options with ocn-view", [
+            console_script("ocn-view"), "--root", "craft_demo", "--repo-id", REPO_ID, "--policy",
+            "train/checkpoints/last/pretrained_model", "--episodes", "20", "--save", "viewer.rrd", "--png",
+            "segmentation.png"]),
+    ]
+
+
+def option_table(eval_json: Path) -> str:
+    """The option x subtask table of an `ocn-eval` result as text: each option's success on each subtask."""
+    result = json.loads(eval_json.read_text())
+    table = result["option_subtask_success"]
+    lines = ["option x subtask success (each option run alone on each subtask):",
+             "          " + "".join(f"{subtask:>10}" for subtask in table["subtasks"])]
+    for row, values in zip(table["rows"], table["table"], strict=True):
+        lines.append(f"{row:>10}" + "".join(f"{value:>10.2f}" for value in values))
+    lines.append(f"NMI {result['nmi']:.3f}  F1@1 {result['f1_tol1']:.3f}  "
+                 f"free-run success {result['mean_success_rate']:.3f}")
+    return "\n".join(lines)
+
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="ocn-quickstart",
-        description=__doc__.splitlines()[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    parser.add_argument("--workdir", type=Path, default=Path("outputs/quickstart"),
-                        help="scratch directory, replaced on every run")
-    parser.add_argument("--episodes-per-task", type=int, default=50)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--train-steps", type=int, default=200, help="lerobot-train steps")
-    parser.add_argument("--batch-size", type=int, default=32, help="lerobot-train windows per step")
-    args = parser.parse_args(argv)
-
+    args = build_parser().parse_args(argv)
     shutil.rmtree(args.workdir, ignore_errors=True)
-    root, mcap = args.workdir / "craft_demo", args.workdir / "craft_demo.mcap"
-    repo_id = "local/craft_quickstart"
-    print(f"[1/5] recording {3 * args.episodes_per_task} expert episodes into {root}", flush=True)
-    subprocess.run(
-        [sys.executable, "-m", "ocn_data.record_demos", "--tasks", "AC,CD,DA", "--episodes-per-task",
-         str(args.episodes_per_task), "--root", str(root), "--repo-id", repo_id, "--seed", str(args.seed),
-         "--mcap", str(mcap)],
-        check=True,
-    )
-
-    print("[2/5] reading it back with LeRobot", flush=True)
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    ds = LeRobotDataset(repo_id, root=root)
-    lengths = np.array([ep["length"] for ep in ds.meta.episodes])
-    tasks = [ep["tasks"][0] for ep in ds.meta.episodes]
-    print(f"  {ds.num_episodes} episodes, {ds.num_frames} frames, splits {ds.meta.info.splits}")
-    for task in dict.fromkeys(tasks):
-        mine = lengths[[t == task for t in tasks]]
-        print(f"  {task!r}: {len(mine)} episodes, mean length {mine.mean():.1f} steps")
-
-    train_dir, eval_json, runs = args.workdir / "train", args.workdir / "eval.json", args.workdir / "policy_runs.mcap"
-    print(f"[3/5] training OCN for {args.train_steps} steps with lerobot-train into {train_dir}", flush=True)
-    subprocess.run(
-        [console_script("lerobot-train"), "--policy.type=ocn", f"--dataset.repo_id={repo_id}", f"--dataset.root={root}",
-         "--policy.device=cpu", "--policy.push_to_hub=false", "--wandb.enable=false", "--env_eval_freq=0",
-         f"--steps={args.train_steps}", f"--batch_size={args.batch_size}", "--num_workers=1",
-         f"--save_freq={args.train_steps}", f"--log_freq={max(1, args.train_steps // 4)}",
-         f"--policy.window_size={int(lengths.max())}", "--policy.usage_balance=1.0", f"--seed={args.seed}",
-         f"--output_dir={train_dir}"],
-        check=True,
-    )
-
-    checkpoint = train_dir / "checkpoints" / "last" / "pretrained_model"
-    print(f"[4/5] evaluating {checkpoint} with ocn-eval", flush=True)
-    subprocess.run(
-        [console_script("ocn-eval"), "--policy", str(checkpoint), "--root", str(root), "--repo-id", repo_id,
-         "--out", str(eval_json), "--rollouts", "20", "--mcap", str(runs)],
-        check=True,
-    )
-
-    rrd, png = args.workdir / "viewer.rrd", args.workdir / "segmentation.png"
-    print(f"[5/5] writing the rerun viewer file {rrd} and the segmentation plot {png} with ocn-view", flush=True)
-    subprocess.run(
-        [console_script("ocn-view"), "--root", str(root), "--repo-id", repo_id, "--policy", str(checkpoint),
-         "--episodes", "20", "--save", str(rrd), "--png", str(png)],
-        check=True,
-    )
-    print(f"done: dataset {root}, MCAP logs {mcap} (demos) and {runs} (policy runs), checkpoint {checkpoint}, "
-          f"scores {eval_json}, option table {eval_json.with_suffix('.png')}, segmentation {png}, "
-          f"viewer file {rrd} (open it with `rerun {rrd}`)")
+    args.workdir.mkdir(parents=True)
+    started = time.perf_counter()
+    steps = commands(args)
+    for number, (what, command) in enumerate(steps, start=1):
+        shown = " ".join([Path(command[0]).name, *command[1:]])
+        print(f"[{number}/{len(steps)}] {what}: {shown}", flush=True)
+        if subprocess.run(command, cwd=args.workdir).returncode != 0:
+            print(f"ocn-quickstart: step {number} ({what}) failed; its output is above.", file=sys.stderr)
+            return 1
+    print(option_table(args.workdir / "eval.json"))
+    print(f"done in {time.perf_counter() - started:.0f} s: {args.workdir}/eval.json (scores), eval.png (option "
+          f"table), segmentation.png, viewer.rrd (open with `rerun {args.workdir}/viewer.rrd`)")
     return 0
 
 

@@ -6,10 +6,24 @@ with N = 1. Tensors inside the cell are module-major: [N, B, features].
 """
 
 import math
-from typing import NamedTuple
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
+
+
+@dataclass(frozen=True)
+class SparseRows:
+    """Input rows given by their nonzero entries: row r is sum_k value[r, k] e_{index[r, k]}, index and value
+    [..., K]. Craft's OMPN features are 1,075 wide with 140 entries set, so the first layer reads them as a
+    sum of 140 weight rows (`StackedCell.project`) instead of multiplying the whole width."""
+
+    index: Tensor
+    value: Tensor
+
+    def __getitem__(self, key: Any) -> "SparseRows":
+        return SparseRows(self.index[key], self.value[key])
 
 
 class CellOutput(NamedTuple):
@@ -114,9 +128,17 @@ class StackedCell(nn.Module):
         self.b_out = stacked_uniform(n_modules, mlp_hidden_size, 1, head_width)
         self.w_x_matrix = SideBySide()
 
-    def project(self, x: Tensor) -> Tensor:
-        """Observation part of the first layer, bias included: x [..., B, in] -> [..., N, B, d_mlp]."""
-        return stacked_linear(x, self.w_x_matrix(self.w_x), self.b_in)
+    def project(self, x: Tensor | SparseRows) -> Tensor:
+        """Observation part of the first layer, bias included: x [..., B, in] (or its `SparseRows`) ->
+        [..., N, B, d_mlp]."""
+        weight = self.w_x_matrix(self.w_x)
+        if not isinstance(x, SparseRows):
+            return stacked_linear(x, weight, self.b_in)
+        n, _, width = self.b_in.shape
+        entries = x.index.shape[-1]
+        flat = torch.nn.functional.embedding_bag(x.index.reshape(-1, entries), weight,
+                                                 per_sample_weights=x.value.reshape(-1, entries), mode="sum")
+        return flat.view(*x.index.shape[:-1], n, width).movedim(-2, -3) + self.b_in
 
     def step(self, x_proj: Tensor, h: Tensor) -> CellOutput:
         """One step from projected observations x_proj [N, B, d_mlp] and states h [N, B, d_hid].

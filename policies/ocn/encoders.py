@@ -16,12 +16,13 @@ import math
 import torch
 from torch import Tensor, nn
 
-from envs.craft.observation import FULL_VIEW_DIM, OMPN_DIM, full_view_features, ompn_features
+from envs.craft.observation import FULL_VIEW_DIM, OMPN_DIM, full_view_features, ompn_active_entries, ompn_features
 from envs.dial import OBS_DIM as DIAL_STATE_DIM
 from envs.dial import PRESS_L1
 from envs.dial.poses import dial_poses
 from envs.dial.scene import N_JOINTS
 
+from policies.ocn.cell import SparseRows
 from policies.sequence import CRAFT_ENCODERS, SequenceConfig
 
 
@@ -35,8 +36,18 @@ class CraftEncoder(nn.Module):
         self.out_dim = FULL_VIEW_DIM if full_view else OMPN_DIM
 
     def forward(self, state: Tensor) -> Tensor:
-        ids = state.round().long() if state.is_floating_point() else state.long()
-        return self.features(ids)
+        return self.features(self._ids(state))
+
+    @staticmethod
+    def _ids(state: Tensor) -> Tensor:
+        return state.round().long() if state.is_floating_point() else state.long()
+
+    def sparse(self, state: Tensor) -> SparseRows | None:
+        """The OMPN features as their 140 set entries (`SparseRows`), for a first layer that sums weight rows
+        rather than multiply the 1,075-wide features; None for the full view, which is built dense."""
+        if self.features is not ompn_features:
+            return None
+        return SparseRows(*ompn_active_entries(self._ids(state)))
 
 
 class IdentityEncoder(nn.Module):

@@ -21,6 +21,7 @@ from policies.sequence import SequencePolicy, frame_mask, window_nll
 
 from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
+from .cell import SparseRows
 from .heads import expected_log_prob, make_action_head, mixture_log_prob
 from .latent_options import LatentDecoderPool
 from .taught import cached_split
@@ -135,10 +136,17 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             x = self.encoder(state.transpose(0, 1).contiguous())
             return self.core.unroll(x, self.core.initial_state(task_index), start)[1]
         order, inverse = longest_first(real)
-        x = self.encoder(state[order].transpose(0, 1).contiguous())
+        x = self._training_features(state[order].transpose(0, 1).contiguous())
         out = self.core.unroll_frames(x, self.core.initial_state(task_index[order]), start, real[order].transpose(0, 1))
         return StepOutput(out.weights[:, inverse], out.params[:, :, inverse], out.p_c[:, inverse], out.end[:, inverse],
                           out.option_end[:, inverse])
+
+    def _training_features(self, state: Tensor) -> Tensor | SparseRows:
+        """The cell input of time-major states for training: Craft's OMPN features as their set entries where
+        the option cells read them (`SparseRows`, the same first layer for a seventh of its cost), else dense."""
+        sparse = getattr(self.encoder, "sparse", None)
+        rows = sparse(state) if sparse is not None and not self.config.decoder_latents else None
+        return self.encoder(state) if rows is None else rows
 
     def _component_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
         """log p_k(a_t) [T, 2N, B] of each mixture component, for time-major outputs and batch-major
