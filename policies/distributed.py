@@ -4,6 +4,13 @@ Under `torchrun` or `accelerate launch` each process computes the loss of its sh
 batch and DDP averages the gradients. A term that is a mean over the batch's episodes, or a function
 of a batch-wide share, is the global batch's only if its sums run over every shard: these sums do,
 with their gradient, and in one process they are the sums themselves.
+
+What DDP needs of a loss is that the average over the processes of their losses' gradients is the
+gradient of the global batch's loss. A mean over the global batch's terms (frames, episodes) has that
+form when each process divides the sum of its own terms by the global count over the number of
+processes (`global_mean_weight`, `global_mean`): the processes' losses then average to the global
+mean, whatever share of the terms each one holds. A plain `.mean()` over each shard does not where
+shards hold different counts, as they do once the held-out episodes of a shard leave its batch.
 """
 
 import torch
@@ -34,3 +41,12 @@ def global_mean_weight(weight: Tensor) -> Tensor:
     batch's weighted mean: the global sum of the weights over the number of processes (no gradient)."""
     with torch.no_grad():
         return global_sum(weight.sum()) / world_size()
+
+
+def global_mean(values: Tensor) -> Tensor:
+    """The mean of `values` (every element one term) over every process's terms, in the form whose
+    DDP-averaged gradient is that of the global mean: this process's sum over `global_mean_weight`. In
+    one process it is `values.mean()`, except that no terms at all give 0 instead of NaN (a shard may
+    hold none: its sum is then 0 and the other processes' terms make the mean)."""
+    count = global_mean_weight(values.new_full((), float(values.numel())))
+    return values.sum() / count.clamp_min(1e-6)

@@ -1,174 +1,186 @@
-"""`ocn-bench train`'s report: every measured row, and the ratios computed from the same runs."""
+"""`ocn-bench`: each benchmark's measuring functions on tiny real runs, its report, where its result goes,
+and a --help that imports neither torch nor LeRobot. No speed is asserted: speeds are measured by the
+committed benchmark results, never by tests."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
 
 import pytest
 
-from tools.bench import _train_markdown
+from conftest import CRAFT_REPO_ID
+from tools import console_script
+from tools.bench import BENCHMARKS, main
 
 
-def _train_run(workers: int, threads: int, step_s: float) -> dict:
-    return {"steps": 150, "batch_size": 128, "num_workers": workers, "threads": threads, "window_size": 24,
-            "step_s": step_s, "update_s": step_s - 0.01, "data_wait_s": 0.01, "real_frames_per_step": 1100.0,
-            "real_frames_per_s": 1100.0 / step_s}
+def _provenance(command: str) -> dict:
+    """The fields `new_result` gives a result, for reports built from measured parts."""
+    return {"benchmark": command.split()[1], "command": command, "note": "", "date": "2026-12-07",
+            "machine": {"cpu": "AMD EPYC", "cores": 2, "python": "3.12.1", "platform": "Linux"}}
 
 
-def test_train_report_gives_the_packed_views_thread_setting_and_its_ratio():
-    result = {
-        "machine": {"cpu": "AMD EPYC", "cores": 2, "python": "3.12.1"}, "device": {"type": "cpu"}, "note": "",
-        "train_rounds": 2, "lerobot_train": _train_run(2, 1, 0.5), "lerobot_train_view": _train_run(2, 1, 0.4),
-        "lerobot_train_packed": _train_run(2, 1, 0.2), "lerobot_train_packed_threads": _train_run(1, 2, 0.125),
-        "getitem_s_per_window": 0.007, "getitem_view_s_per_window": 0.005, "getitem_packed_s_per_row": 0.0005,
-        "update_only": [{"threads": 1, "real_frames_per_s": 12000.0, "padded_frames_per_s": 40000.0,
-                         "running_vs_every_row": {"running_rows_per_s": 40000.0, "every_row_per_s": 25000.0,
-                                                  "speedup": 1.6},
-                         "restarts_ahead_vs_each_step": {"restarts_ahead_per_s": 39000.0,
-                                                         "restarts_each_step_per_s": 30000.0, "speedup": 1.3}}],
-        "stacked_vs_loop": {"stacked_frames_per_s": 26000.0, "loop_frames_per_s": 24000.0, "speedup": 26 / 24},
-        "select_action_s": {"batch_1": 0.0004, "batch_64": 0.002},
-    }
-    report = _train_markdown(result)
-    assert "on the packed view, batch 128, 1 worker, 2 math threads, window 24 | 8,800 real frames/s" in report
-    assert "on S1, batch 128, 2 workers, 1 math thread, window 24 | 2,200 real frames/s" in report
-    assert "| one worker and two math threads against 2 workers and one (same runs) | 1.60x |" in report
-    assert "(stacked is 1.08x)" in report and "| 0.40 ms per step |" in report
-    assert ("padding included (as before `OCNCore.unroll_frames`; alternated, best of 3) | stepping only the rows "
-            "still in their episode is 1.60x faster") in report
-    assert ("computed in each step (as before `OCNCore.restarts_ahead`; alternated, best of 3) | computing it for "
-            "the whole window in one call is 1.30x faster") in report
+def test_help_imports_neither_torch_nor_lerobot():
+    """`ocn-bench --help` and every subcommand's, in a fresh interpreter: none imports torch or LeRobot."""
+    script = (
+        "import contextlib, io, sys\n"
+        "from tools.bench import BENCHMARKS, build_parser\n"
+        "for argv in [['--help'], *[[name, '--help'] for name in BENCHMARKS]]:\n"
+        "    with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.suppress(SystemExit):\n"
+        "        build_parser().parse_args(argv)\n"
+        "    assert 'usage: ocn-bench' in out.getvalue(), argv\n"
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'lerobot'))\n"
+        "assert not heavy, heavy[:5]\n"
+    )
+    subprocess.run([sys.executable, "-c", script], check=True)
+    assert set(BENCHMARKS) == {"train", "ppo", "env", "dial", "stacked", "skills", "quickstart"}
 
 
-def test_stepping_every_row_keeps_the_loss_and_is_undone():
-    """The baseline of the running-rows speed-up: the same loss, every row stepped, only inside."""
-    import torch
-
-    from lerobot.utils.constants import ACTION
-    from policies.ocn.benchmark import make_bench_policy, random_batch, stepping_every_row
-
-    policy = make_bench_policy(hidden_size=16, obs_dim=20, window=6)
-    batch = random_batch(policy, 4, 6)
-    batch[f"{ACTION}_is_pad"][0, 2:] = batch[f"{ACTION}_is_pad"][3, 4:] = True
-    running, _ = policy.forward(batch)
-    calls = []
-    core_step = policy.core.step
-    policy.core.step = lambda state, x, start, restarted: calls.append(start.shape[0]) or core_step(
-        state, x, start, restarted)
-    with stepping_every_row(policy):
-        every, _ = policy.forward(batch)
-    assert calls == [4] * 6  # every row at every step of the window
-    calls.clear()
-    policy.forward(batch)
-    assert calls == [4, 4, 3, 3, 2, 2]  # outside, only the rows still in their episode
-    torch.testing.assert_close(every, running)
+def test_results_go_under_the_working_folder_with_date_machine_and_command(tmp_path, monkeypatch):
+    """Without --out a benchmark writes results/bench_NAME.{json,md} under the current folder, and a second
+    run overwrites that one pair."""
+    monkeypatch.chdir(tmp_path)
+    for _ in range(2):
+        main(["dial", "--steps", "16", "--pins", "2", "--note", "test run"])
+    assert sorted(path.name for path in (tmp_path / "results").iterdir()) == ["bench_dial.json", "bench_dial.md"]
+    result = json.loads((tmp_path / "results" / "bench_dial.json").read_text())
+    assert result["command"] == "ocn-bench dial --steps 16 --pins 2 --note 'test run'"
+    assert result["date"] and result["machine"]["cores"] >= 1 and result["machine"]["cpu"]
+    report = (tmp_path / "results" / "bench_dial.md").read_text()
+    assert f"Command: `{result['command']}`. Date: {result['date']}. Machine: {result['machine']['cpu']}" in report
+    assert "Conditions: test run" in report
+    assert result["expert"]["pins"] == 2 and 0.0 <= result["expert"]["success"] <= 1.0
+    assert result["env"]["physics_ratio"] > 0
 
 
-@pytest.mark.parametrize("only_real_frames", [True, False])
-def test_restarting_in_each_step_keeps_the_loss_and_gradients_and_is_undone(only_real_frames):
-    """The baseline of the restarts-ahead speed-up: the options' restarted branch computed in each step
-    gives the same loss and gradients as one call for the whole window, over the real frames alone
-    (`unroll_frames`) and over every frame (`unroll_projected`); only inside the context."""
-    import torch
-
-    from lerobot.utils.constants import ACTION
-    from policies.ocn.benchmark import make_bench_policy, random_batch, restarting_in_each_step
-    from policies.sequence import training_windows
-
-    policy = make_bench_policy(hidden_size=16, obs_dim=20, window=6)
-    batch = random_batch(policy, 4, 6)
-    batch[f"{ACTION}_is_pad"][0, 2:] = batch[f"{ACTION}_is_pad"][3, 4:] = True
-    mask, state, _ = training_windows(policy.config, batch)
-    calls = []
-    restarts = policy.core.restarts
-    policy.core.restarts = lambda x_options: calls.append(x_options.shape[1]) or restarts(x_options)
-
-    def loss_and_gradients() -> tuple:
-        policy.zero_grad(set_to_none=True)
-        out = policy._unroll(state, batch["task"], mask if only_real_frames else None)
-        loss = (out.weights.square().sum() + out.params.square().sum() + out.end.sum())
-        loss.backward()
-        return loss, [parameter.grad.clone() for parameter in policy.parameters()]
-
-    ahead, ahead_grads = loss_and_gradients()
-    assert calls == ([mask.sum().item()] if only_real_frames else [4 * 6])  # one call for the window
-    calls.clear()
-    with restarting_in_each_step(policy):
-        each, each_grads = loss_and_gradients()
-    assert calls == ([4, 4, 3, 3, 2, 2] if only_real_frames else [4] * 6)  # one call per step
-    calls.clear()
-    loss_and_gradients()
-    assert len(calls) == 1
-    torch.testing.assert_close(ahead, each)
-    for got, expected in zip(ahead_grads, each_grads, strict=True):
-        torch.testing.assert_close(got, expected)
-
-
-def test_critic_per_step_gives_the_same_replay_and_gradients_and_is_undone():
-    """The baseline of the replay speed-up: the critic one decision step at a time, only inside."""
-    import torch
-
-    import tools.ppo as ppo
-    from tools.ppo_speed import bench_pool, critic_per_step
-
-    policy = bench_pool("flat", ["get wood", "get grass"])
-    critic = ppo.ValueHead(policy.config.hidden_size, 8)
-    state = torch.rand(3, 5, 81)
-    task_index = torch.tensor([0, 1, 0])
-
-    def replayed() -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
-        policy.zero_grad(set_to_none=True)
-        critic.zero_grad(set_to_none=True)
-        logits, values = ppo.replay_controller(policy, critic, state, task_index)
-        (logits.square().sum() + values.sum()).backward()
-        grads = [p.grad.clone() for p in (*policy.core.controller.parameters(), *critic.parameters())]
-        return logits.detach(), values.detach(), grads
-
-    at_once = critic.net
-    logits, values, grads = replayed()
-    with critic_per_step(critic):
-        assert critic.net is not at_once
-        per_step_logits, per_step_values, per_step_grads = replayed()
-    assert critic.net is at_once
-    assert logits.shape == (3, 5, 5) and values.shape == (3, 5)
-    torch.testing.assert_close(per_step_logits, logits)
-    torch.testing.assert_close(per_step_values, values)
-    for per_step, now in zip(per_step_grads, grads, strict=True):
-        torch.testing.assert_close(per_step, now)
-
-
-def test_ocn_bench_ppo_writes_both_pools_rates_and_the_replay_ratio(tmp_path):
-    import json
-
-    from tools.bench import main
-
-    out = tmp_path / "bench_ppo.json"
-    main(["ppo", "--envs", "3", "--iterations", "1", "--out", str(out), "--note", "test"])
-    result = json.loads(out.read_text())
-    pools = {p["pool"]: p for p in result["pools"]}
-    assert set(pools) == {"flat", "ocn"}
-    assert pools["flat"]["decisions_per_frame"] == 1.0  # a decision at every step
-    assert 0 < pools["ocn"]["decisions_per_frame"] < 1.0
-    for p in pools.values():
-        assert p["frames"] > 0 and p["frames_per_s"] > 0 and p["replay"]["speedup"] > 0
-    report = out.with_suffix(".md").read_text()
-    assert "Conditions: test" in report and "| flat pool (a decision every step" in report
-
-
-def test_ocn_bench_stacked_writes_one_row_per_setting_and_refuses_bad_lists(tmp_path, capsys):
-    import json
-
-    import pytest
-
-    from tools.bench import main
-
-    out = tmp_path / "bench_stacked.json"
+def test_stacked_writes_one_row_per_setting_against_the_goal_and_refuses_bad_lists(tmp_path, capsys):
+    out = tmp_path / "stacked.json"
     main(["stacked", "--options", "2,3", "--batch-sizes", "1,3", "--threads", "1", "--window", "4", "--rounds", "1",
           "--out", str(out)])
-    rows = json.loads(out.read_text())["rows"]
+    result = json.loads(out.read_text())
+    rows = result["rows"]
     assert [(row["n_options"], row["batch_size"], row["threads"]) for row in rows] == [
         (2, 1, 1), (2, 3, 1), (3, 1, 1), (3, 3, 1)]
     for row in rows:
         assert row["speedup"] == pytest.approx(row["stacked_frames_per_s"] / row["loop_frames_per_s"])
     assert [row["overhead_bound"] for row in rows] == pytest.approx([14 / 9, 14 / 9, 19 / 9, 19 / 9])
-    assert f"| 3 | 3 | 1 | {rows[3]['stacked_frames_per_s']:,.0f} |" in out.with_suffix(".md").read_text()
+    report = out.with_suffix(".md").read_text()
+    assert result["goal"] == 1.5 and "Goal: stacked at least 1.5x the loop" in report
+    met = "yes" if rows[3]["speedup"] >= 1.5 else "no"
+    assert f"| 3 | 3 | 1 | {rows[3]['stacked_frames_per_s']:,.0f} |" in report and f"| {met} |" in report
     for bad in ("0,8", "8,x"):
         with pytest.raises(SystemExit):
             main(["stacked", "--batch-sizes", bad, "--out", str(out)])
         assert "--batch-sizes" in capsys.readouterr().err
+
+
+def test_ppo_times_each_part_of_an_iteration_with_a_checkpoints_options(tmp_path, ocn_checkpoint, capsys):
+    out = tmp_path / "ppo.json"
+    main(["ppo", "--envs", "3,6", "--iterations", "1", "--task-sets", "s1", "--checkpoint", str(ocn_checkpoint),
+          "--out", str(out)])
+    result = json.loads(out.read_text())
+    assert result["checkpoint"] == str(ocn_checkpoint)
+    assert [(row["task_set"], row["envs"]) for row in result["rows"]] == [("s1", 3), ("s1", 6)]
+    for row in result["rows"]:
+        assert row["frames"] > 0 and row["decisions"] > 0 and row["frames_per_s"] > 0
+        parts = row["select_action_s"] + row["env_step_s"]
+        assert 0 < parts < row["collect_s"]  # the rest of collecting: processors and bookkeeping
+        assert row["trainable_params"] > 0
+    report = out.with_suffix(".md").read_text()
+    assert "the options of" in report and "| S1 (ADC,CAD,DCA) | 6 |" in report and "S1: 6 envs run" in report
+    with pytest.raises(SystemExit):
+        main(["ppo", "--task-sets", "s1,s9", "--out", str(out)])
+    assert "unknown task sets ['s9']" in capsys.readouterr().err
+
+
+def test_ppo_without_a_checkpoint_stands_in_a_random_ocn(tmp_path):
+    from tools.bench.ppo import iteration_times
+
+    row = iteration_times(None, "BADC,ACBD,CABD", 3, 1)
+    assert row["envs"] == 3 and 0 < row["decisions_per_frame"] < 1  # options that run more than one step
+
+
+def test_env_rates_and_a_record_demos_run():
+    from tools.bench import env
+
+    rates = env.env_rates(40)
+    assert set(rates) == {"single_env_steps_per_s", "batched_64_core_steps_per_s", "vector_env_64_steps_per_s"}
+    assert all(rate > 0 for rate in rates.values())
+    recorded = env.record_rate(1, mcap=True)
+    assert recorded["episodes"] == 3 and recorded["frames"] > 0 and recorded["wall_s"] > 0
+    assert recorded["command"] == ("record_demos --env craft --tasks AC,CD,DA --episodes-per-task 1 --root R "
+                                   "--repo-id local/s1 --mcap demo.mcap")
+    report = env.markdown({**_provenance("ocn-bench env"), "env_steps": rates, "record_demos": recorded,
+                           "record_demos_with_mcap": recorded, "record_demos_import_s": env.import_seconds(repeats=1)})
+    assert f"`{recorded['command']}` (3 episodes" in report
+
+
+def test_train_runs_one_and_two_processes_on_the_same_samples(tmp_path, craft_dataset, capsys):
+    """The whole benchmark at a tiny size: 1 and 2 processes of lerobot-train on one global batch, their
+    parse scores, and what bounds the ratio; a batch that does not split is refused first."""
+    out = tmp_path / "train.json"
+    with pytest.raises(SystemExit, match="does not split evenly"):
+        main(["train", "--root", str(craft_dataset), "--batch-size", "5", "--out", str(out)])
+    main(["train", "--root", str(craft_dataset), "--steps", "2", "--batch-size", "4", "--workers", "0",
+          "--eval-rollouts", "1", "--out", str(out)])
+    result = json.loads(out.read_text())
+    one, two = result["runs"]
+    assert one["effective_batch_logged"] == "Effective batch size: 4 x 1 = 4"
+    assert two["effective_batch_logged"] == "Effective batch size: 2 x 2 = 4"
+    assert one["samples"] == two["samples"] == 8 and two["command"].startswith("torchrun --standalone")
+    for run in (one, two):
+        assert run["real_frames_per_s"] > 0 and 0.0 <= run["nmi"] <= 1.0 and 0.0 <= run["f1_tol1"] <= 1.0
+    assert [row["batch"] for row in result["update_alone"]] == [4, 2]
+    assert result["allreduce_s"]["2"]["gradients"] > 0 and result["dataset"]["recorded_by"] is None
+    report = out.with_suffix(".md").read_text()
+    assert "(its log: Effective batch size: 2 x 2 = 4)" in report and "at most **" in report
+    assert f"{one['num_params']:,} floats" in report and "accelerate launch --multi_gpu" in report
+
+
+def test_train_reads_lerobots_step_lines():
+    from tools.bench.train import logged_steps
+
+    log = ("INFO 2026-12-07 ot_train.py:641 step:1K smpl:128K ep:6K epch:1.00 loss:1.2 grdn:0.3 lr:1.0e-03 "
+           "updt_s:0.250 data_s:0.010 smp/s:492 nll:1.1 frames_used:1510.500 mean_end:0.2\nINFO other line\n")
+    assert logged_steps(log) == [{"step": 1000.0, "updt_s": 0.25, "data_s": 0.01, "frames_used": 1510.5}]
+
+
+def test_skills_runs_the_plain_commands_from_an_empty_folder(tmp_path):
+    from tools.bench import skills
+    from tools.bench.common import typed
+
+    args = argparse.Namespace(steps=2, episodes_per_task=2, device="cpu")
+    commands = skills.plain_commands(tmp_path, 3, args)
+    assert {name: typed(command).replace(f"{tmp_path}/", "") for name, command in commands.items()} == {
+        "record_demos": "record_demos --env craft --tasks AC,CD,DA --episodes-per-task 2 --root R --repo-id local/s1",
+        "lerobot-train": "lerobot-train --policy.type=ocn --policy.device=cpu --dataset.repo_id=local/s1 "
+                         "--dataset.root=R --steps=2 --batch_size=128 --output_dir=O --seed=3 --wandb.enable=false "
+                         "--policy.push_to_hub=false",
+        "ocn-eval": "ocn-eval --policy O/checkpoints/last/pretrained_model --root R --repo-id local/s1 --out M.json",
+    }
+    commands["lerobot-train"].append("--num_workers=0")  # the test's one change: no data workers to start
+    commands["ocn-eval"] += ["--rollouts", "1"]
+    timed = skills.timed_pipeline(commands, tmp_path)
+    assert set(timed["wall_s"]) == set(commands) and timed["total_wall_s"] >= sum(timed["wall_s"].values())
+    assert timed["against_ompn_release"] == pytest.approx(timed["total_wall_s"] / 900.0)
+    assert timed["reached_goal"] == (timed["nmi"] >= 0.95)
+    result = {**_provenance("ocn-bench skills --steps 2"), "nmi_goal": 0.95, "ompn_release_wall_s": 900.0,
+              "ompn_release_f1": 0.98, "seeds": [{"seed": 3, **timed}]}
+    report = skills.markdown(result)
+    assert "    record_demos --env craft" in report and f"| 3 | {timed['wall_s']['record_demos']:.0f} |" in report
+
+
+def test_quickstart_measures_a_command_in_an_empty_folder_against_the_goals(craft_dataset, ocn_checkpoint):
+    """`measure` on a real command that writes the quickstart's eval.json (ocn-eval, one rollout), since the
+    quickstart itself takes minutes."""
+    from tools.bench import quickstart
+
+    measured = quickstart.measure([console_script("ocn-eval"), "--policy", str(ocn_checkpoint), "--root",
+                                   str(craft_dataset), "--repo-id", CRAFT_REPO_ID, "--out", str(quickstart.EVAL_JSON),
+                                   "--rollouts", "1"])
+    assert measured["wall_s"] > 0 and measured["met"]["wall"] == (measured["wall_s"] <= 240.0)
+    assert measured["met"]["nmi"] == (measured["nmi"] >= 0.9)
+    result = {**_provenance("ocn-bench quickstart"), **measured}
+    assert f"| NMI (`outputs/quickstart/eval.json`) | **{measured['nmi']:.3f}** | >= 0.9" in quickstart.markdown(result)

@@ -10,12 +10,12 @@ from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
-from policies.ocn.benchmark import use_looped_cells
 from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
 from policies.ocn.configuration_ocn import RECIPE_TABLE
 from policies.ocn.heads import DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, sample_index
 from policies.ocn.modeling_ocn import settle_penalty, usage_imbalance
 from policies.ocn.recurrence import OCNState, StepOutput
+from tools.bench.models import use_looped_cells
 
 torch.set_num_threads(1)
 

@@ -42,9 +42,17 @@ def stacked_uniform(n_modules: int, fan_in: int, *shape: int) -> nn.Parameter:
 
 
 def side_by_side(weight: Tensor) -> Tensor:
-    """Stacked maps [N, in, out] as one matrix [in, N * out] (a copy: the N maps interleave)."""
-    n, in_dim, width = weight.shape
-    return weight.transpose(0, 1).reshape(in_dim, n * width)
+    """Stacked maps [N, in, out] as one matrix [in, N * out], map i in columns i * out to (i + 1) * out (a copy
+    for N > 1: the N maps interleave; a view of the one map for N = 1).
+
+    Built from the maps one by one (`unbind`, then `cat`) rather than by transposing the stack, so that the
+    gradient comes back in the weight's own layout: the backward of `unbind` stacks the maps' gradients into a
+    new [N, in, out] tensor. Through a transpose it came back transposed: AccumulateGrad copied it into the
+    weight's layout for N > 1, and for the controller's N = 1 kept it as it came, with strides that differ
+    from the weight's (harmless alone, but DDP compares them with its bucket's and warned "Grad strides do
+    not match bucket view strides" at every step)."""
+    maps = weight.unbind(0)
+    return maps[0] if len(maps) == 1 else torch.cat(maps, dim=1)
 
 
 def stacked_linear(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
@@ -59,12 +67,12 @@ class SideBySide:
     """`side_by_side` of one weight, kept between calls where no gradient is needed.
 
     The copy costs more than the matmul itself for one env (a fresh 1.6 MB at every inference step
-    of the default options), so outside autograd it is reused until the weight changes: in-place
-    updates (optimizer steps, `load_state_dict`) bump the weight's version counter and moves give
-    it new storage. Where the weight needs a gradient it is copied afresh, inside the graph, and so
-    is a weight made in inference mode, which has no version counter. The kept copy is a normal
-    tensor even when made in inference mode (as `lerobot-eval` calls `select_action`), so that
-    autograd may use it later.
+    of the default options; the controller's one map is a view, which costs nothing), so outside
+    autograd it is reused until the weight changes: in-place updates (optimizer steps,
+    `load_state_dict`) bump the weight's version counter and moves give it new storage. Where the
+    weight needs a gradient it is copied afresh, inside the graph, and so is a weight made in
+    inference mode, which has no version counter. The kept copy is a normal tensor even when made
+    in inference mode (as `lerobot-eval` calls `select_action`), so that autograd may use it later.
     """
 
     def __init__(self) -> None:

@@ -15,7 +15,7 @@ from torch import Tensor
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-from policies.distributed import global_sum
+from policies.distributed import global_mean, global_sum
 from policies.schedules import clock_of
 from policies.sequence import SequencePolicy, frame_mask, window_nll
 
@@ -225,7 +225,8 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         """The loss with the split given instead of induced (`OCNCore.teacher_forced`): each frame's NLL
         under its labelled option, the controller's cross-entropy at each labelled switch, and the
         running option's termination as a binary cross-entropy at every later frame (target 1 where the
-        label changes), weighted by `termination_weight`. Each term is a mean over its frames. `batch`
+        label changes), weighted by `termination_weight`. Each term is a mean over its frames, those of
+        the global batch in a distributed run (`policies.distributed.global_mean`). `batch`
         holds whole episodes from their first frame, as `parse` takes them; `option` [B, T] is each
         frame's option index, -1 on padding. The stats include the mean termination at the switches and
         at the other frames, which tell terminations that fire where they should from a mean that only
@@ -247,17 +248,21 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         task_index = self.task_index(batch["task"], state.shape[0])
         projected = self.core.project(self.encoder(state.transpose(0, 1).contiguous()))
         out = self.core.teacher_forced(projected, self.core.initial_state(task_index), option, decided)
-        nll = -self.head.log_prob(out.params.unsqueeze(1), action.transpose(0, 1)).squeeze(1)[mask].mean()
-        choice = torch.nn.functional.cross_entropy(out.controller_logits[mask & decided], option[mask & decided])
+        nll = global_mean(-self.head.log_prob(out.params.unsqueeze(1), action.transpose(0, 1)).squeeze(1)[mask])
+        switches = mask & decided
+        choice = global_mean(torch.nn.functional.cross_entropy(out.controller_logits[switches], option[switches],
+                                                               reduction="none"))
         stats = {"nll": nll.item(), "choice_ce": choice.item(), "frames_used": int(mask.sum())}
         if moe:
             return nll + choice, stats
         later = mask.clone()
         later[0] = False
-        termination = torch.nn.functional.binary_cross_entropy(out.end[later], decided[later].to(out.end.dtype))
-        stats |= {"termination_bce": termination.item(), "mean_end": out.end[later].mean().item(),
-                  "mean_end_at_switch": out.end[later & decided].mean().item(),
-                  "mean_end_elsewhere": out.end[later & ~decided].mean().item()}
+        termination = global_mean(torch.nn.functional.binary_cross_entropy(
+            out.end[later], decided[later].to(out.end.dtype), reduction="none"))
+        with torch.no_grad():
+            stats |= {"termination_bce": termination.item(), "mean_end": global_mean(out.end[later]).item(),
+                      "mean_end_at_switch": global_mean(out.end[later & decided]).item(),
+                      "mean_end_elsewhere": global_mean(out.end[later & ~decided]).item()}
         return nll + choice + termination_weight * termination, stats
 
     @torch.no_grad()
