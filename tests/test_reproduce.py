@@ -141,10 +141,9 @@ def test_a_flag_that_is_not_a_model_size_or_baseline_never_names_a_clone():
     assert Model("OMPN", "ompn").with_flags(n_options=2).folder == "ompn"
 
 
-def test_help_is_quick_and_imports_neither_torch_nor_lerobot():
-    probe = ("import sys, time; started = time.perf_counter(); from tools.reproduce import build_parser; "
-             "parser = build_parser(); print(time.perf_counter() - started, "
-             "any(name.split('.')[0] in ('torch', 'lerobot') for name in sys.modules))")
-    seconds, heavy = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
-                                    check=True).stdout.split()
-    assert heavy == "False" and float(seconds) < 2.0
+def test_help_imports_neither_torch_nor_lerobot():
+    """What keeps `--help` instant (its time is a benchmark's business, not a test's)."""
+    probe = ("import sys; from tools.reproduce import build_parser; parser = build_parser(); "
+             "print(any(name.split('.')[0] in ('torch', 'lerobot') for name in sys.modules))")
+    heavy = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.split()
+    assert heavy == ["False"]

@@ -7,7 +7,7 @@ import shlex
 
 import pytest
 
-from tools.bench import RESULTS
+from tools.bench.common import RESULTS
 from tools.reproduce import dial, main
 from tools.reproduce.finetune import CLONED
 from tools.reproduce.runs import train_command

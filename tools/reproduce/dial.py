@@ -45,7 +45,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tools.bench import RESULTS
+from tools.bench.common import RESULTS
 from tools.reproduce import curves, finetune
 from tools.reproduce.clones import Demos, Size, clone, record, scored, size_of
 from tools.reproduce.finetune import CLONED, Setting, add_ppo_arguments, budget_table, finetune_run, summarise
@@ -173,17 +173,16 @@ def reproduce(args: argparse.Namespace) -> int:
     data = record(args.workdir, setting.demos[0], size_of(args))
     imitation: list[dict[str, Any]] = []
     runs: list[dict[str, Any]] = []
-    for seed in args.seeds:
-        for method in args.methods:
-            if method == "ocn":
-                model = CLONED["ocn"].with_flags(**setting.clone_flags)
-                trained = clone(args.workdir, setting.demos[0], data, model, seed, size_of(args))
-                imitation.append({"seed": seed, **scored(args.workdir, setting.demos[0], data, trained, args.rollouts)})
-            for reward in args.rewards:
-                runs.append(finetune_run(args, setting, method, reward, seed))
-                result = {**provenance(args.argv, settings), "split_report": split_report(args.workdir / data.root),
-                          **study(setting, imitation, runs), "wall_s": round(time.perf_counter() - started)}
-                write(results, result)
+    for seed, method in finetune.planned(args):
+        if method == "ocn":
+            model = CLONED["ocn"].with_flags(**setting.clone_flags)
+            trained = clone(args.workdir, setting.demos[0], data, model, seed, size_of(args))
+            imitation.append({"seed": seed, **scored(args.workdir, setting.demos[0], data, trained, args.rollouts)})
+        for reward in args.rewards:
+            runs.append(finetune_run(args, setting, method, reward, seed))
+            result = {**provenance(args.argv, settings), "split_report": split_report(args.workdir / data.root),
+                      **study(setting, imitation, runs), "wall_s": round(time.perf_counter() - started)}
+            write(results, result)
     print(markdown(result))
     return 0
 

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tools.bench import RESULTS
+from tools.bench.common import RESULTS
 from tools.reproduce.clones import (Demos, Model, Size, add_size_arguments, clone, record, scored, seed_list,
                                     size_of)
 from tools.reproduce.report import (check, checks_table, mean_std, origin_words, provenance, rates_cell, seconds_cell,

@@ -11,7 +11,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from tools.bench import machine
+from tools.bench.common import machine
 
 
 def provenance(argv: Sequence[str], settings: dict[str, Any]) -> dict[str, Any]:
