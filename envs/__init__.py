@@ -2,7 +2,7 @@
 
 Registration is skipped for ids already present, so importing (or reloading) twice is silent.
 `OCN/CraftLeRobot-v0` and `OCN/DialLeRobot-v0` are Craft and Dial shaped for `lerobot-eval` (see
-envs.lerobot_env); entry points are imported only when an env is made, so registering them imports
+lerobot_policy_ocn.envs.lerobot_env); entry points are imported only when an env is made, so registering them imports
 neither LeRobot nor MuJoCo.
 """
 
@@ -17,16 +17,17 @@ for _env_id, _mode in CRAFT_ENV_IDS.items():
     if _env_id not in registry:
         register(
             id=_env_id,
-            entry_point="envs.craft.env:CraftEnv",
-            vector_entry_point="envs.craft.env:CraftVectorEnv",
+            entry_point="lerobot_policy_ocn.envs.craft.env:CraftEnv",
+            vector_entry_point="lerobot_policy_ocn.envs.craft.env:CraftVectorEnv",
             kwargs={"mode": _mode},
         )
 
 if CRAFT_LEROBOT_ENV_ID not in registry:
-    register(id=CRAFT_LEROBOT_ENV_ID, entry_point="envs.craft.lerobot_env:make_lerobot_craft_env")
+    register(id=CRAFT_LEROBOT_ENV_ID, entry_point="lerobot_policy_ocn.envs.craft.lerobot_env:make_lerobot_craft_env")
 
 if DIAL_ENV_ID not in registry:
-    register(id=DIAL_ENV_ID, entry_point="envs.dial.env:DialEnv", vector_entry_point="envs.dial.env:DialVectorEnv")
+    register(id=DIAL_ENV_ID, entry_point="lerobot_policy_ocn.envs.dial.env:DialEnv",
+             vector_entry_point="lerobot_policy_ocn.envs.dial.env:DialVectorEnv")
 
 if DIAL_LEROBOT_ENV_ID not in registry:
-    register(id=DIAL_LEROBOT_ENV_ID, entry_point="envs.dial.lerobot_env:make_lerobot_dial_env")
+    register(id=DIAL_LEROBOT_ENV_ID, entry_point="lerobot_policy_ocn.envs.dial.lerobot_env:make_lerobot_dial_env")

@@ -1,4 +1,4 @@
-"""Record the Craft expert (see ocn_data.recorder for the machinery).
+"""Record the Craft expert (see lerobot_policy_ocn.ocn_data.recorder for the machinery).
 
 Tasks are queued interleaved (AC, CD, DA, AC, ...) so any prefix of the recording, and so the
 validation split at its end, holds every task equally.
@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.craft import N_ACTIONS, CraftBatch, CraftExpert
-from envs.craft.observation import OBS_DIM, OBS_NAMES
-from envs.craft.render import render_batch
-from envs.craft.world import SUBTASK_NAMES, default_max_steps, task_description
-from ocn_data.recorder import IMAGE_KEY, LABEL_FEATURES, ExpertRecorder
+from lerobot_policy_ocn.envs.craft import N_ACTIONS, CraftBatch, CraftExpert
+from lerobot_policy_ocn.envs.craft.observation import OBS_DIM, OBS_NAMES
+from lerobot_policy_ocn.envs.craft.render import render_batch
+from lerobot_policy_ocn.envs.craft.world import SUBTASK_NAMES, default_max_steps, task_description
+from lerobot_policy_ocn.ocn_data.recorder import IMAGE_KEY, LABEL_FEATURES, ExpertRecorder
 
 # The noise `record_demos` records Craft with by default (results/imitation_s1.md).
 CRAFT_DART_NOISE = 0.1

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import jinja2
 
-from ocn_data.episodes_table import dataset_world, read_info
-from ocn_data.provenance import PROVENANCE, load_provenance
+from lerobot_policy_ocn.ocn_data.episodes_table import dataset_world, read_info
+from lerobot_policy_ocn.ocn_data.provenance import PROVENANCE, load_provenance
 
 DATACARDS = Path(__file__).resolve().parent.parent / "datacards"
 
@@ -38,7 +38,7 @@ ANNOTATION = "meta/ocn_annotation.json"
 
 def craft_observation_layout() -> list[dict]:
     """The card's table of what each range of `observation.state` holds."""
-    from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING, INVENTORY
+    from lerobot_policy_ocn.envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING, INVENTORY
 
     return [
         {"start": CELLS.start, "stop": CELLS.stop,
@@ -95,9 +95,9 @@ def recording_context(root: str | Path, repo_id: str, task_code: Callable[[str, 
 
 def craft_card_context(root: str | Path, repo_id: str) -> dict:
     """What `datacards/craft.md` needs."""
-    from envs.craft.observation import OBS_DIM
-    from envs.craft.world import parse_task, task_code
-    from ocn_data.recorder import IMAGE_KEY
+    from lerobot_policy_ocn.envs.craft.observation import OBS_DIM
+    from lerobot_policy_ocn.envs.craft.world import parse_task, task_code
+    from lerobot_policy_ocn.ocn_data.recorder import IMAGE_KEY
 
     context = recording_context(root, repo_id, lambda task, session: task_code(parse_task(task, session["mode"])))
     image = context["info"]["features"].get(IMAGE_KEY)
@@ -112,9 +112,11 @@ def craft_card_context(root: str | Path, repo_id: str) -> dict:
 
 def dial_card_context(root: str | Path, repo_id: str) -> dict:
     """What `datacards/dial.md` needs: the shared context plus the scene's constants."""
-    from envs.dial import DIGIT_CELLS, FRAME_SKIP, GEARS, PRESS_L1, RELEASE_L1, key_positions, parse_pin, pin_code
-    from envs.dial.expert import NOISE_HOLD
-    from envs.dial.task import STEPS_PER_DIGIT
+    from lerobot_policy_ocn.envs.dial import (
+        DIGIT_CELLS, FRAME_SKIP, GEARS, PRESS_L1, RELEASE_L1, key_positions, parse_pin, pin_code,
+    )
+    from lerobot_policy_ocn.envs.dial.expert import NOISE_HOLD
+    from lerobot_policy_ocn.envs.dial.task import STEPS_PER_DIGIT
 
     context = recording_context(root, repo_id, lambda task, session: pin_code(parse_pin(task)))
     session = context["session"]

@@ -1,4 +1,4 @@
-"""Record the Dial expert (see ocn_data.recorder for the machinery).
+"""Record the Dial expert (see lerobot_policy_ocn.ocn_data.recorder for the machinery).
 
 The queue holds either random PINs (`pin_length` digits from `digits`, drawn from the recording
 seed and the session's first attempt, so a resumed session draws new ones) or given PINs
@@ -13,13 +13,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from envs.dial import DialBatch, DialExpert
-from envs.dial.batch import OBS_DIM
-from envs.dial.env import FPS
-from envs.dial.expert import NOISE_LEVELS
-from envs.dial.scene import JOINTS, N_JOINTS
-from envs.dial.task import SUBTASK_NAMES, default_max_steps, sample_pin, task_description
-from ocn_data.recorder import LABEL_FEATURES, ExpertRecorder
+from lerobot_policy_ocn.envs.dial import DialBatch, DialExpert
+from lerobot_policy_ocn.envs.dial.batch import OBS_DIM
+from lerobot_policy_ocn.envs.dial.env import FPS
+from lerobot_policy_ocn.envs.dial.expert import NOISE_LEVELS
+from lerobot_policy_ocn.envs.dial.scene import JOINTS, N_JOINTS
+from lerobot_policy_ocn.envs.dial.task import SUBTASK_NAMES, default_max_steps, sample_pin, task_description
+from lerobot_policy_ocn.ocn_data.recorder import LABEL_FEATURES, ExpertRecorder
 
 __all__ = ["FPS", "DialRecorder", "dial_features", "dial_state_names", "random_pins"]
 

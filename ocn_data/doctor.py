@@ -15,7 +15,7 @@ writes and what an interrupted swap left beside the folder. It rewrites `meta/in
 splits) and `meta/stats.json` (aggregated, as LeRobot does, from the kept episodes' own statistics)
 and, for a `record_demos` dataset, appends the repair to `meta/ocn_recording.json` and rebuilds the
 card. Nothing else is touched, and the repair is itself one atomic swap
-(`ocn_data.durable.FolderTransaction`). A damaged `meta/info.json` or `meta/tasks.parquet` cannot be
+(`lerobot_policy_ocn.ocn_data.durable.FolderTransaction`). A damaged `meta/info.json` or `meta/tasks.parquet` cannot be
 rebuilt: restore it from a copy.
 
 `ocn-doctor LOG.mcap` checks an MCAP log of `record_demos` or `ocn-eval`: a log whose writer was
@@ -36,9 +36,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from ocn_data.durable import PARTIAL_SUFFIX, FolderTransaction, leftovers, previous_path, recover
-from ocn_data.lerobot_writer import INFO_PATH, STATS_PATH, TASKS_PATH, split_ranges
-from ocn_data.provenance import PROVENANCE, load_provenance, write_provenance
+from lerobot_policy_ocn.ocn_data.durable import PARTIAL_SUFFIX, FolderTransaction, leftovers, previous_path, recover
+from lerobot_policy_ocn.ocn_data.lerobot_writer import INFO_PATH, STATS_PATH, TASKS_PATH, split_ranges
+from lerobot_policy_ocn.ocn_data.provenance import PROVENANCE, load_provenance, write_provenance
 
 # What interrupted writes leave inside a dataset: ours, and the `.parquet.tmp` of writers before them.
 PARTIAL_PATTERNS = (f"*{PARTIAL_SUFFIX}", "*.parquet.tmp")
@@ -417,7 +417,7 @@ def _record_repair(root: Path, transaction: FolderTransaction, diagnosis: Diagno
     """A record_demos dataset notes the repair in its provenance and gets its card rebuilt."""
     if not (root / PROVENANCE).is_file():
         return
-    from ocn_data.datacard import dataset_card
+    from lerobot_policy_ocn.ocn_data.datacard import dataset_card
 
     provenance = load_provenance(root)
     provenance.setdefault("repairs", []).append({
@@ -444,7 +444,7 @@ def _card_repo_id(root: Path) -> str:
 
 def _describe_log(path: Path, repair_it: bool) -> tuple[int, list[str]]:
     """Check (and with `repair_it`, finish) an MCAP log; returns the exit code and the lines to print."""
-    from ocn_data.mcap_log import finish_log, log_is_finished, read_mcap_messages
+    from lerobot_policy_ocn.ocn_data.mcap_log import finish_log, log_is_finished, read_mcap_messages
 
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist.")

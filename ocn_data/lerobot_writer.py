@@ -8,7 +8,7 @@ LeRobot's own writer produces (`meta/info.json`, `meta/stats.json`, `meta/tasks.
 `videos/<key>/chunk-*/file-*.mp4`) one chunk of many episodes at a time, through LeRobot's own
 metadata, IO, stats-aggregation and video-encoding helpers. Each chunk becomes one data file.
 
-Crash safety: each chunk is one `ocn_data.durable.FolderTransaction`. Its data file, videos and
+Crash safety: each chunk is one `lerobot_policy_ocn.ocn_data.durable.FolderTransaction`. Its data file, videos and
 episode table, the rewritten tasks, statistics and `meta/info.json` (totals and splits), and
 whatever the caller adds (`record_demos`: the provenance and the card) are staged beside the
 dataset, fsynced, and swapped in at once. A SIGKILL at any instant leaves the dataset as it was
@@ -55,10 +55,10 @@ from lerobot.utils.constants import DEFAULT_FEATURES
 from lerobot.utils.feature_utils import _validate_feature_names
 from PIL import Image
 
-from ocn_data.durable import FolderTransaction
-from ocn_data.episodes import EpisodeChunk
-from ocn_data.language_rows import empty_events_column, persistent_column
-from ocn_data.stats import STAT_KEYS, episode_stats, pooled_stats
+from lerobot_policy_ocn.ocn_data.durable import FolderTransaction
+from lerobot_policy_ocn.ocn_data.episodes import EpisodeChunk
+from lerobot_policy_ocn.ocn_data.language_rows import empty_events_column, persistent_column
+from lerobot_policy_ocn.ocn_data.stats import STAT_KEYS, episode_stats, pooled_stats
 
 DATA_PATH = "data/chunk-{chunk:03d}/file-{file:03d}.parquet"
 EPISODES_PATH = "meta/episodes/chunk-{chunk:03d}/file-{file:03d}.parquet"

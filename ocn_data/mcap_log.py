@@ -30,8 +30,8 @@ from mcap.records import Channel, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from ocn_data.durable import atomic_output
-from ocn_data.episodes import EpisodeChunk
+from lerobot_policy_ocn.ocn_data.durable import atomic_output
+from lerobot_policy_ocn.ocn_data.episodes import EpisodeChunk
 
 STEP_KEYS = {"episode_index": {"type": "integer"}, "frame_index": {"type": "integer"}}
 

@@ -1,5 +1,5 @@
-"""`python -m ocn_data.record_babyai`: BabyAI bot demonstrations as a LeRobot v3.0 dataset, written by
-LeRobot's own `LeRobotDataset` writer (`create`, `add_frame`, `save_episode`, `finalize`).
+"""`python -m lerobot_policy_ocn.ocn_data.record_babyai`: BabyAI bot demonstrations as a LeRobot v3.0 dataset,
+written by LeRobot's own `LeRobotDataset` writer (`create`, `add_frame`, `save_episode`, `finalize`).
 
 Episode k is the bot's demonstration of mission `MISSIONS[k % 150]`, so every run of 150
 consecutive episodes holds each mission once and both splits hold the missions evenly (the
@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from envs.babyai import MinigridMissing, minigrid_installed
-from ocn_data.recorder import LABEL_FEATURES
+from lerobot_policy_ocn.envs.babyai import MinigridMissing, minigrid_installed
+from lerobot_policy_ocn.ocn_data.recorder import LABEL_FEATURES
 
 WORLD = "babyai"
 FPS = 10
@@ -35,7 +35,7 @@ class UsageError(ValueError):
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m ocn_data.record_babyai",
+        prog="python -m lerobot_policy_ocn.ocn_data.record_babyai",
         description="Record BabyAI bot demonstrations (level OpenPickupSeq) into a LeRobot v3.0 dataset "
         "with LeRobot's own writer. Needs the babyai extra.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
@@ -70,7 +70,7 @@ def env_seed(seed: int, attempt: int) -> int:
 
 def babyai_features() -> dict[str, dict]:
     """LeRobot features of a BabyAI demonstration dataset (the state layout: envs.babyai.observation)."""
-    from envs.babyai.observation import STATE_DIM, STATE_NAMES
+    from lerobot_policy_ocn.envs.babyai.observation import STATE_DIM, STATE_NAMES
 
     return {
         "observation.state": {"dtype": "int64", "shape": (STATE_DIM,), "names": list(STATE_NAMES)},
@@ -91,9 +91,9 @@ def record(root: Path, repo_id: str, episodes: int, seed: int, val_fraction: flo
     from lerobot.datasets.io_utils import write_info
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    from envs.babyai.env import BabyAIEnv
-    from envs.babyai.expert import demonstrate
-    from envs.babyai.missions import MISSIONS
+    from lerobot_policy_ocn.envs.babyai.env import BabyAIEnv
+    from lerobot_policy_ocn.envs.babyai.expert import demonstrate
+    from lerobot_policy_ocn.envs.babyai.missions import MISSIONS
 
     env = BabyAIEnv()
     dataset = LeRobotDataset.create(repo_id, FPS, babyai_features(), root=root, robot_type=WORLD, use_videos=False)

@@ -22,32 +22,32 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from envs.craft.render import TILE
-from envs.craft.world import GRID_SIZE, MODES, REWARDS, parse_task_list, task_description
-from envs.dial.expert import NOISE_LEVELS
-from envs.dial.task import parse_digits, parse_pin_list
-from envs.dial.task import task_description as dial_task_description
-from ocn_data.craft_recorder import CRAFT_DART_NOISE
-from ocn_data.craft_recorder import FPS as CRAFT_FPS
-from ocn_data.craft_recorder import CraftRecorder, craft_features
-from ocn_data.dial_recorder import FPS as DIAL_FPS
-from ocn_data.dial_recorder import DialRecorder, dial_features, random_pins
-from ocn_data.datacard import dataset_card
-from ocn_data.doctor import NotRepairableError, diagnose
-from ocn_data.durable import FolderTransaction, previous_path, recover
-from ocn_data.episodes import EpisodeChunk
-from ocn_data.episodes_table import read_info
-from ocn_data.lerobot_writer import (
+from lerobot_policy_ocn.envs.craft.render import TILE
+from lerobot_policy_ocn.envs.craft.world import GRID_SIZE, MODES, REWARDS, parse_task_list, task_description
+from lerobot_policy_ocn.envs.dial.expert import NOISE_LEVELS
+from lerobot_policy_ocn.envs.dial.task import parse_digits, parse_pin_list
+from lerobot_policy_ocn.envs.dial.task import task_description as dial_task_description
+from lerobot_policy_ocn.ocn_data.craft_recorder import CRAFT_DART_NOISE
+from lerobot_policy_ocn.ocn_data.craft_recorder import FPS as CRAFT_FPS
+from lerobot_policy_ocn.ocn_data.craft_recorder import CraftRecorder, craft_features
+from lerobot_policy_ocn.ocn_data.dial_recorder import FPS as DIAL_FPS
+from lerobot_policy_ocn.ocn_data.dial_recorder import DialRecorder, dial_features, random_pins
+from lerobot_policy_ocn.ocn_data.datacard import dataset_card
+from lerobot_policy_ocn.ocn_data.doctor import NotRepairableError, diagnose
+from lerobot_policy_ocn.ocn_data.durable import FolderTransaction, previous_path, recover
+from lerobot_policy_ocn.ocn_data.episodes import EpisodeChunk
+from lerobot_policy_ocn.ocn_data.episodes_table import read_info
+from lerobot_policy_ocn.ocn_data.lerobot_writer import (
     STOP_SIGNALS,
     ColumnarDatasetWriter,
     DatasetExistsError,
     NoDatasetError,
     held_stop_signals,
 )
-from ocn_data.mcap_log import DemoMcapWriter, check_new_log
-from ocn_data.preflight import check_can_create, check_repo_id
-from ocn_data.provenance import PROVENANCE, load_provenance, write_provenance
-from ocn_data.recorder import ExpertRecorder
+from lerobot_policy_ocn.ocn_data.mcap_log import DemoMcapWriter, check_new_log
+from lerobot_policy_ocn.ocn_data.preflight import check_can_create, check_repo_id
+from lerobot_policy_ocn.ocn_data.provenance import PROVENANCE, load_provenance, write_provenance
+from lerobot_policy_ocn.ocn_data.recorder import ExpertRecorder
 
 
 def build_parser() -> argparse.ArgumentParser:

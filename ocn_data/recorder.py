@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ocn_data.episodes import EpisodeChunk
+from lerobot_policy_ocn.ocn_data.episodes import EpisodeChunk
 
 IMAGE_KEY = "observation.image"
 # Columns every recorder writes besides the state and the action: ground truth for evaluation only.

@@ -4,7 +4,7 @@ a policy mixin with LeRobot's constructor and the task table.
 
 Training batches: LeRobot loads single frames (the policies ask for no `delta_timestamps`), and the
 policy trains on the whole episode of each sampled frame, read from its `EpisodeMemory`
-(`policies.episode_memory`), from t = 1 with its task's initial state, as the paper trains. A batch
+(`lerobot_policy_ocn.episode_memory`), from t = 1 with its task's initial state, as the paper trains. A batch
 that already holds episodes ([B, T, S] states from their first frame, with `action_is_pad`) trains
 as it is, which is how probes and tests feed chosen episodes.
 """
@@ -17,15 +17,15 @@ from typing import Any, ClassVar, NamedTuple
 import torch
 from torch import Tensor
 
-from envs.craft.observation import OBS_DIM as CRAFT_STATE_DIM
-from envs.dial import OBS_DIM as DIAL_STATE_DIM
+from lerobot_policy_ocn.envs.craft.observation import OBS_DIM as CRAFT_STATE_DIM
+from lerobot_policy_ocn.envs.dial import OBS_DIM as DIAL_STATE_DIM
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.configs.types import FeatureType
 from lerobot.optim import AdamConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-from policies.distributed import global_mean_weight
-from policies.episode_memory import EpisodeMemory
+from lerobot_policy_ocn.distributed import global_mean_weight
+from lerobot_policy_ocn.episode_memory import EpisodeMemory
 
 # Encoders of Craft's compact state (see policies/ocn/encoders.py); "identity" takes float states as they
 # are (standardised); "dial_keys" reads Dial's raw state and adds each key's log distance. "auto" picks

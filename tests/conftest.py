@@ -21,14 +21,16 @@ from typing import Any
 import pytest
 import torch
 
-import lerobot_policy_ocn  # noqa: F401  (registers `ocn` and `craft` as LeRobot's CLIs do)
+import lerobot_policy_ocn
 from lerobot.utils.constants import ACTION, OBS_STATE
-from ocn_data.record_demos import main as record_demos
+from lerobot_policy_ocn.ocn_data.record_demos import main as record_demos
+
+lerobot_policy_ocn.register()  # the project's policy and env types, as LeRobot's CLIs register them
 
 CRAFT_REPO_ID = "local/craft_small"
 # What a policy of Craft's compact state and actions takes from a dataset, for policies built in memory.
 CRAFT_STATE = {"obs_encoder": "craft", "action_type": "discrete", "n_actions": 5}
-# The Dial recipe caches its affine fits beside LeRobot's cache (`policies.ocn.taught.split_cache_dir`): the
+# The Dial recipe caches its affine fits beside LeRobot's cache (`lerobot_policy_ocn.ocn.taught.split_cache_dir`): the
 # tests, and the processes they start, keep theirs in a folder of their own.
 os.environ["HF_LEROBOT_HOME"] = tempfile.mkdtemp(prefix="ocn_tests_lerobot_home_")
 DIAL_REPO_ID = "local/dial_ocn_test"
@@ -61,7 +63,7 @@ def reload_checkpoint(path: Path, policy_class: type) -> tuple[torch.nn.Module, 
     """A trained checkpoint loaded as the tools load it (`load_policy`), after checking that it is a
     `policy_class` and that LeRobot's own `from_pretrained` reads the same weights; returns the
     policy and its preprocessor."""
-    from tools.episode_parsing import load_policy
+    from lerobot_policy_ocn.tools.eval.parsing import load_policy
 
     policy, preprocessor, _ = load_policy(path)
     assert isinstance(policy, policy_class)
@@ -140,7 +142,7 @@ def untrained_checkpoint(
 @pytest.fixture(scope="session")
 def ocn_checkpoint(craft_dataset, tmp_path_factory) -> Path:
     """A `pretrained_model` folder of a small, untrained OCN (seeded weights) for `craft_dataset`."""
-    from policies.ocn import OCNConfig
+    from lerobot_policy_ocn.ocn import OCNConfig
 
     def sharpen(policy: torch.nn.Module) -> None:
         """Sharpen the random controller so that its chosen option switches within episodes."""

@@ -1,6 +1,6 @@
 """BabyAI (envs.babyai, ocn_data.record_babyai): the mission language, the one-line errors without
 minigrid, and, with minigrid (the `babyai` extra), a tiny dataset recorded through the command and
-read back by LeRobot and by ocn_data.episodes_table, ground-truth labels on real episodes and
+read back by LeRobot and by lerobot_policy_ocn.ocn_data.episodes_table, ground-truth labels on real episodes and
 free runs of the bot."""
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from envs.babyai import BABYAI_ENV_ID, INSTALL_HINT, minigrid_installed
-from envs.babyai.missions import MISSIONS, SUBGOALS, parse_mission
-from envs.babyai.observation import STATE_DIM
-from ocn_data.episodes_table import load_episodes, split_episodes
-from ocn_data.record_babyai import env_seed, main
+from lerobot_policy_ocn.envs.babyai import BABYAI_ENV_ID, INSTALL_HINT, minigrid_installed
+from lerobot_policy_ocn.envs.babyai.missions import MISSIONS, SUBGOALS, parse_mission
+from lerobot_policy_ocn.envs.babyai.observation import STATE_DIM
+from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+from lerobot_policy_ocn.ocn_data.record_babyai import env_seed, main
 
 ROOT = Path(__file__).resolve().parents[1]
 REPO_ID = "local/babyai_test"
@@ -47,11 +47,12 @@ def test_mission_language() -> None:
 
 def test_without_minigrid_nothing_is_registered_and_errors_say_how_to_install(tmp_path: Path) -> None:
     hide = "import sys; sys.modules['minigrid'] = None; "
-    done = python(hide + f"import gymnasium, envs.babyai; assert {BABYAI_ENV_ID!r} not in gymnasium.registry; "
-                  "import envs.babyai.env")
+    done = python(hide + "import gymnasium, lerobot_policy_ocn.envs.babyai; "
+                  f"assert {BABYAI_ENV_ID!r} not in gymnasium.registry; "
+                  "import lerobot_policy_ocn.envs.babyai.env")
     assert done.returncode != 0 and f"MinigridMissing: {INSTALL_HINT}" in done.stderr
     args = ["--root", str(tmp_path / "d"), "--repo-id", REPO_ID, "--episodes", "1"]
-    done = python(hide + f"from ocn_data.record_babyai import main; sys.exit(main({args!r}))")
+    done = python(hide + f"from lerobot_policy_ocn.ocn_data.record_babyai import main; sys.exit(main({args!r}))")
     assert done.returncode == 2
     assert done.stderr.splitlines() == [f"record_babyai: {INSTALL_HINT}"]
     assert "pip install '.[babyai]'" in INSTALL_HINT and not (tmp_path / "d").exists()
@@ -59,7 +60,8 @@ def test_without_minigrid_nothing_is_registered_and_errors_say_how_to_install(tm
 
 @needs_minigrid
 def test_registration_does_not_import_minigrid() -> None:
-    done = python(f"import sys, gymnasium, envs.babyai; assert {BABYAI_ENV_ID!r} in gymnasium.registry; "
+    done = python("import sys, gymnasium, lerobot_policy_ocn.envs.babyai; "
+                  f"assert {BABYAI_ENV_ID!r} in gymnasium.registry; "
                   "assert 'minigrid' not in sys.modules; env = gymnasium.make(" + repr(BABYAI_ENV_ID) + "); "
                   "state, info = env.reset(seed=1); assert env.observation_space.contains(state), state; "
                   "print(info['mission'])")
@@ -93,8 +95,8 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     if not minigrid_installed():
         pytest.skip("minigrid is not installed: uv sync --extra babyai (or pip install '.[babyai]')")
     root = tmp_path_factory.mktemp("babyai") / "data"
-    command = [sys.executable, "-m", "ocn_data.record_babyai", "--root", str(root), "--repo-id", REPO_ID,
-               "--episodes", str(EPISODES), "--seed", "7"]
+    command = [sys.executable, "-m", "lerobot_policy_ocn.ocn_data.record_babyai", "--root", str(root),
+               "--repo-id", REPO_ID, "--episodes", str(EPISODES), "--seed", "7"]
     done = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     return root
@@ -139,7 +141,7 @@ def test_ground_truth_follows_each_mission(dataset: Path) -> None:
 
 @needs_minigrid
 def test_mission_strings_are_minigrids_own() -> None:
-    from envs.babyai.env import BabyAIEnv
+    from lerobot_policy_ocn.envs.babyai.env import BabyAIEnv
 
     env = BabyAIEnv()
     for text in [m.text for m in MISSIONS] + list(SUBGOALS):
@@ -149,7 +151,7 @@ def test_mission_strings_are_minigrids_own() -> None:
 
 @needs_minigrid
 def test_render_draws_the_grid() -> None:
-    from envs.babyai.env import BabyAIEnv
+    from lerobot_policy_ocn.envs.babyai.env import BabyAIEnv
 
     env = BabyAIEnv(mission=MISSIONS[0].text, render_mode="rgb_array")
     env.reset(seed=2)
@@ -161,9 +163,9 @@ def test_render_draws_the_grid() -> None:
 @needs_minigrid
 def test_state_layout_shows_the_carried_object() -> None:
     """Right after a pickup, the agent's own cell (x 3, y 6) of the view holds the object it carries."""
-    from envs.babyai.env import BabyAIEnv
-    from envs.babyai.expert import demonstrate
-    from envs.babyai.minigrid_api import COLOR_TO_IDX, OBJECT_TO_IDX
+    from lerobot_policy_ocn.envs.babyai.env import BabyAIEnv
+    from lerobot_policy_ocn.envs.babyai.expert import demonstrate
+    from lerobot_policy_ocn.envs.babyai.minigrid_api import COLOR_TO_IDX, OBJECT_TO_IDX
 
     demo = demonstrate(BabyAIEnv(), "pick up the purple box, then open the blue door", seed=11)
     t = int(np.flatnonzero(demo.action == 3)[0])
@@ -177,9 +179,9 @@ def test_state_layout_shows_the_carried_object() -> None:
 def test_labels_follow_the_order_the_verifier_saw() -> None:
     """In "A and B, then C" either order completes the mission; a bot that does B first (planned on
     the mission with A and B swapped) gets labels in that order."""
-    from envs.babyai.env import BabyAIEnv
-    from envs.babyai.level import mission_instr
-    from envs.babyai.minigrid_api import BabyAIBot
+    from lerobot_policy_ocn.envs.babyai.env import BabyAIEnv
+    from lerobot_policy_ocn.envs.babyai.level import mission_instr
+    from lerobot_policy_ocn.envs.babyai.minigrid_api import BabyAIBot
 
     env = BabyAIEnv()
     env.reset(seed=5, options={"mission": "pick up the yellow ball and open the red door, then open the green door"})
@@ -200,8 +202,8 @@ def test_labels_follow_the_order_the_verifier_saw() -> None:
 
 @needs_minigrid
 def test_free_runs_of_the_bot_succeed_and_of_a_spinner_fail() -> None:
-    from envs.babyai.expert import BotPolicy
-    from envs.babyai.rollout import run_missions
+    from lerobot_policy_ocn.envs.babyai.expert import BotPolicy
+    from lerobot_policy_ocn.envs.babyai.rollout import run_missions
 
     missions = [m.text for m in MISSIONS[::15]] + ["open the blue door"]
     seeds = list(range(100, 100 + len(missions)))

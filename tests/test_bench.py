@@ -12,8 +12,8 @@ import sys
 import pytest
 
 from conftest import CRAFT_REPO_ID
-from tools import console_script
-from tools.bench import BENCHMARKS, main
+from lerobot_policy_ocn.tools import console_script
+from lerobot_policy_ocn.tools.bench import BENCHMARKS, main
 
 
 def _provenance(command: str) -> dict:
@@ -26,7 +26,7 @@ def test_help_imports_neither_torch_nor_lerobot():
     """`ocn-bench --help` and every subcommand's, in a fresh interpreter: none imports torch or LeRobot."""
     script = (
         "import contextlib, io, sys\n"
-        "from tools.bench import BENCHMARKS, build_parser\n"
+        "from lerobot_policy_ocn.tools.bench import BENCHMARKS, build_parser\n"
         "for argv in [['--help'], *[[name, '--help'] for name in BENCHMARKS]]:\n"
         "    with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.suppress(SystemExit):\n"
         "        build_parser().parse_args(argv)\n"
@@ -96,14 +96,14 @@ def test_ppo_times_each_part_of_an_iteration_with_a_checkpoints_options(tmp_path
 
 
 def test_ppo_without_a_checkpoint_stands_in_a_random_ocn(tmp_path):
-    from tools.bench.ppo import iteration_times
+    from lerobot_policy_ocn.tools.bench.ppo import iteration_times
 
     row = iteration_times(None, "BADC,ACBD,CABD", 3, 1)
     assert row["envs"] == 3 and 0 < row["decisions_per_frame"] < 1  # options that run more than one step
 
 
 def test_env_rates_and_a_record_demos_run():
-    from tools.bench import env
+    from lerobot_policy_ocn.tools.bench import env
 
     rates = env.env_rates(40)
     assert set(rates) == {"single_env_steps_per_s", "batched_64_core_steps_per_s", "vector_env_64_steps_per_s"}
@@ -140,7 +140,7 @@ def test_train_runs_one_and_two_processes_on_the_same_samples(tmp_path, craft_da
 
 
 def test_train_reads_lerobots_step_lines():
-    from tools.bench.train import logged_steps
+    from lerobot_policy_ocn.tools.bench.train import logged_steps
 
     log = ("INFO 2026-12-07 ot_train.py:641 step:1K smpl:128K ep:6K epch:1.00 loss:1.2 grdn:0.3 lr:1.0e-03 "
            "updt_s:0.250 data_s:0.010 smp/s:492 nll:1.1 frames_used:1510.500 mean_end:0.2\nINFO other line\n")
@@ -148,8 +148,8 @@ def test_train_reads_lerobots_step_lines():
 
 
 def test_skills_runs_the_plain_commands_from_an_empty_folder(tmp_path):
-    from tools.bench import skills
-    from tools.bench.common import typed
+    from lerobot_policy_ocn.tools.bench import skills
+    from lerobot_policy_ocn.tools.bench.common import typed
 
     args = argparse.Namespace(steps=2, episodes_per_task=2, device="cpu")
     commands = skills.plain_commands(tmp_path, 3, args)
@@ -175,7 +175,7 @@ def test_skills_runs_the_plain_commands_from_an_empty_folder(tmp_path):
 def test_quickstart_measures_a_command_in_an_empty_folder_against_the_goals(craft_dataset, ocn_checkpoint):
     """`measure` on a real command that writes the quickstart's eval.json (ocn-eval, one rollout), since the
     quickstart itself takes minutes."""
-    from tools.bench import quickstart
+    from lerobot_policy_ocn.tools.bench import quickstart
 
     measured = quickstart.measure([console_script("ocn-eval"), "--policy", str(ocn_checkpoint), "--root",
                                    str(craft_dataset), "--repo-id", CRAFT_REPO_ID, "--out", str(quickstart.EVAL_JSON),

@@ -12,15 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-import lerobot_policy_ocn  # noqa: F401  (registers `compile` and `craft` as LeRobot's CLIs do)
 from conftest import CRAFT_REPO_ID, craft_rollout, episode_windows, reload_checkpoint, run_cli
 from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
-from ocn_data.episodes_table import load_episodes, split_episodes
-from policies.compile import CompILEConfig, CompILEPolicy
-from policies.compile.modeling_compile import NEG, CompILEOutput, compile_loss, latent_kl, length_prior
-from tools.episode_parsing import load_policy, score_segmentations, segment_episodes
+from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+from lerobot_policy_ocn.compile import CompILEConfig, CompILEPolicy
+from lerobot_policy_ocn.compile.modeling_compile import NEG, CompILEOutput, compile_loss, latent_kl, length_prior
+from lerobot_policy_ocn.tools.eval.parsing import load_policy, score_segmentations, segment_episodes
 
 torch.set_num_threads(1)
 

@@ -12,12 +12,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from envs.craft.batch import CraftBatch
-from envs.craft.world import parse_task, task_description
-from policies.compile import CompILEPolicy
+from lerobot_policy_ocn.envs.craft.batch import CraftBatch
+from lerobot_policy_ocn.envs.craft.world import parse_task, task_description
+from lerobot_policy_ocn.compile import CompILEPolicy
 from test_ocn_finetune import assert_refused, decisions_match_frames, hard_rollout, save_variant, variant
-from tools.episode_parsing import load_ocn, load_policy
-from tools.ocn_finetune import compile_latent_options, main, merge_option_pools
+from lerobot_policy_ocn.tools.eval.parsing import load_ocn, load_policy
+from lerobot_policy_ocn.tools.cli.ocn_finetune import compile_latent_options, main, merge_option_pools
 
 torch.set_num_threads(1)
 
@@ -119,7 +119,7 @@ def test_gaussian_latents_and_mixed_pools_are_refused(compile_checkpoint, ocn_ch
 
 
 def test_a_decoder_pool_needs_one_step_options():
-    from policies.ocn import OCNConfig
+    from lerobot_policy_ocn.ocn import OCNConfig
 
     with pytest.raises(ValueError, match="need hierarchy='moe' and n_options a multiple of decoder_latents"):
         OCNConfig(device="cpu", recipe="paper", n_options=6, decoder_latents=4, hierarchy="moe")

@@ -11,8 +11,8 @@ import pytest
 import torch
 from gymnasium.vector import AutoresetMode
 
-import envs
-from envs.craft import (
+from lerobot_policy_ocn import envs
+from lerobot_policy_ocn.envs.craft import (
     ACTION_NAMES,
     KIND_NAMES,
     NAMED_TASKS,
@@ -27,8 +27,8 @@ from envs.craft import (
     task_code,
     task_description,
 )
-from envs.craft.layout import EMPTY_BORDERED
-from envs.craft.observation import (
+from lerobot_policy_ocn.envs.craft.layout import EMPTY_BORDERED
+from lerobot_policy_ocn.envs.craft.observation import (
     AGENT_COL,
     AGENT_ROW,
     CELLS,
@@ -41,7 +41,7 @@ from envs.craft.observation import (
     OMPN_DIM,
     full_view_features,
 )
-from envs.craft.world import (
+from lerobot_policy_ocn.envs.craft.world import (
     AXE,
     BED,
     BOUNDARY,

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs.craft import NAMED_TASKS, CraftBatch, CraftExpert, parse_task
-from envs.craft.layout import EMPTY_BORDERED
-from envs.craft.world import BRIDGE, DOWN, EMPTY, GOLD, IRON, LEFT, RIGHT, STONE, UP, USE, WATER, WOOD
+from lerobot_policy_ocn.envs.craft import NAMED_TASKS, CraftBatch, CraftExpert, parse_task
+from lerobot_policy_ocn.envs.craft.layout import EMPTY_BORDERED
+from lerobot_policy_ocn.envs.craft.world import (
+    BRIDGE, DOWN, EMPTY, GOLD, IRON, LEFT, RIGHT, STONE, UP, USE, WATER, WOOD,
+)
 
 PAPER_TASKS = ["AC", "CD", "DA", "AB", "BA", "DC", "ADC", "CAD", "DCA", "BADC", "ACBD", "CABD"]
 

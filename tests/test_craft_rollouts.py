@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 import torch
 
-from envs.craft.batch import CraftBatch
-from envs.craft.world import USE, default_max_steps
+from lerobot_policy_ocn.envs.craft.batch import CraftBatch
+from lerobot_policy_ocn.envs.craft.world import USE, default_max_steps
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
-from policies.ocn import OCNConfig, OCNPolicy
-from tools.craft_rollouts import craft_world
-from tools.worlds import craft
-from tools.rollouts import free_run_success, option_subtask_success, oracle_controller_success
+from lerobot_policy_ocn.ocn import OCNConfig, OCNPolicy
+from lerobot_policy_ocn.tools.rl.craft_rollouts import craft_world
+from lerobot_policy_ocn.tools.worlds import craft
+from lerobot_policy_ocn.tools.rl.rollouts import free_run_success, option_subtask_success, oracle_controller_success
 from conftest import CRAFT_STATE
 
 TASK = "get wood, get iron"

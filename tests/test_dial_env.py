@@ -10,8 +10,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import envs  # noqa: F401  (registers OCN/Dial-v0)
-from envs.dial import (
+from lerobot_policy_ocn import envs  # noqa: F401  (registers OCN/Dial-v0)
+from lerobot_policy_ocn.envs.dial import (
     GEARS,
     OBS_DIM,
     PRESS_L1,
@@ -190,7 +190,7 @@ def test_lerobot_env_config_make_env():
     from lerobot.envs.configs import EnvConfig
     from lerobot.envs.factory import make_env
 
-    from envs.dial.lerobot_env import motor_controls
+    from lerobot_policy_ocn.envs.dial.lerobot_env import motor_controls
 
     cfg = EnvConfig.get_choice_class("dial")(task="21", render_mode=None)
     assert cfg.features["agent_pos"].shape == (39,) and cfg.features["action"].shape == (9,)
@@ -210,7 +210,7 @@ def _render_in_subprocess(backend: str | None) -> subprocess.CompletedProcess:
     if backend:
         env["MUJOCO_GL"] = backend
     code = (
-        "from envs.dial import DialEnv\n"
+        "from lerobot_policy_ocn.envs.dial import DialEnv\n"
         "e = DialEnv(task='12', render_mode='rgb_array'); e.reset(seed=0)\n"
         "try:\n    f = e.render()\nexcept RuntimeError as err:\n    print('ERROR', err)\n"
         "else:\n    print('FRAME', f.shape, f.dtype, int(f.std() > 10))\n"

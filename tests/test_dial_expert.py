@@ -6,9 +6,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from envs.dial import PRESS_L1, DialBatch, DialExpert, dial_model, dial_poses, key_positions
-from envs.dial.expert import NOISE_HOLD, NOISE_LEVELS, PRESS_BLEND
-from envs.dial.poses import HOVER_HEIGHT
+from lerobot_policy_ocn.envs.dial import PRESS_L1, DialBatch, DialExpert, dial_model, dial_poses, key_positions
+from lerobot_policy_ocn.envs.dial.expert import NOISE_HOLD, NOISE_LEVELS, PRESS_BLEND
+from lerobot_policy_ocn.envs.dial.poses import HOVER_HEIGHT
 
 
 def fingertip(qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -17,14 +17,13 @@ from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 from lerobot.policies.factory import make_policy
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-import lerobot_policy_ocn  # noqa: F401  (registers `ocn` and `dial` as LeRobot's CLIs do)
-from envs.dial import DialBatch, task_description
-from policies.ocn import OCNConfig, make_ocn_pre_post_processors
+from lerobot_policy_ocn.envs.dial import DialBatch, task_description
+from lerobot_policy_ocn.ocn import OCNConfig, make_ocn_pre_post_processors
 from test_ocn_finetune import assert_refused, decisions_match_frames, lerobot_eval_rollout, save_variant
-from tools.dial_rollouts import DIAL_WORLD
-from tools.episode_parsing import load_ocn, load_policy
-from tools.ocn_finetune import main, merge_option_pools, save_checkpoint
-from tools.ppo import Acting, collect
+from lerobot_policy_ocn.tools.rl.dial_rollouts import DIAL_WORLD
+from lerobot_policy_ocn.tools.eval.parsing import load_ocn, load_policy
+from lerobot_policy_ocn.tools.cli.ocn_finetune import main, merge_option_pools, save_checkpoint
+from lerobot_policy_ocn.tools.rl.ppo import Acting, collect
 from conftest import DIAL_REPO_ID
 
 torch.set_num_threads(1)

@@ -1,6 +1,6 @@
 """Continuous-action OCN on Dial: the Gaussian-mixture NLL on recorded Dial windows, unnormalised
 torques out of the postprocessor, `lerobot-train --policy.type=ocn` and `lerobot-eval
---env.type=dial` as real subprocesses, the Dial rollouts of `tools.dial_rollouts`, and `ocn-eval` and
+--env.type=dial` as real subprocesses, the Dial rollouts of `tools.rl.dial_rollouts`, and `ocn-eval` and
 `ocn-view` on a Dial dataset (ground-truth boundaries at the key presses, the JSON, the MCAP log of
 the free runs, the .rrd read back), and `ocn-annotate`'s copy of it read back by LeRobot.
 
@@ -25,22 +25,21 @@ from lerobot.policies.factory import make_policy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from torch.distributions import Categorical, Independent, MixtureSameFamily, Normal
 
-import lerobot_policy_ocn  # noqa: F401  (registers `ocn` and `dial` as LeRobot's CLIs do)
-from envs.dial import PRESS_L1, DialBatch, dial_poses, key_positions, parse_pin
-from envs.dial.scene import N_JOINTS
-from ocn_data.dial_recorder import dial_state_names
-from ocn_data.episodes_table import load_episodes, split_episodes
-from ocn_data.mcap_log import read_mcap_messages
-from policies.ocn import OCNConfig, OCNPolicy
-from policies.ocn.encoders import DialKeyEncoder
-from policies.ocn.processor_ocn import make_ocn_pre_post_processors
-from tools.dial_rollouts import DIAL_WORLD
-from tools.rollouts import free_run_success, option_subtask_success
+from lerobot_policy_ocn.envs.dial import PRESS_L1, DialBatch, dial_poses, key_positions, parse_pin
+from lerobot_policy_ocn.envs.dial.scene import N_JOINTS
+from lerobot_policy_ocn.ocn_data.dial_recorder import dial_state_names
+from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+from lerobot_policy_ocn.ocn_data.mcap_log import read_mcap_messages
+from lerobot_policy_ocn.ocn import OCNConfig, OCNPolicy
+from lerobot_policy_ocn.ocn.encoders import DialKeyEncoder
+from lerobot_policy_ocn.ocn.processor_ocn import make_ocn_pre_post_processors
+from lerobot_policy_ocn.tools.rl.dial_rollouts import DIAL_WORLD
+from lerobot_policy_ocn.tools.rl.rollouts import free_run_success, option_subtask_success
 from rrd_reading import forward_fill, read_rrd, values
-from tools import ocn_annotate, ocn_eval, ocn_view
-from tools.episode_parsing import load_ocn, parse_episodes
-from tools.parsing_metrics import boundaries_from_labels
-from tools.view_scenes import DialScene
+from lerobot_policy_ocn.tools.cli import ocn_annotate, ocn_eval, ocn_view
+from lerobot_policy_ocn.tools.eval.parsing import load_ocn, parse_episodes
+from lerobot_policy_ocn.tools.eval.metrics import boundaries_from_labels
+from lerobot_policy_ocn.tools.viz.scenes import DialScene
 from conftest import DIAL_REPO_ID, run_cli
 
 REPO_ID = DIAL_REPO_ID

@@ -9,10 +9,10 @@ from lerobot.policies.factory import make_policy
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 from conftest import DIAL_REPO_ID
-from ocn_data.episodes_table import load_episodes, split_episodes
-from policies.ocn import OCNConfig
-from policies.ocn.modeling_ocn import OPTION
-from policies.ocn.taught import (
+from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+from lerobot_policy_ocn.ocn import OCNConfig
+from lerobot_policy_ocn.ocn.modeling_ocn import OPTION
+from lerobot_policy_ocn.ocn.taught import (
     best_paths,
     cached_split,
     descend,
@@ -21,7 +21,7 @@ from policies.ocn.taught import (
     split_and_merge,
     split_cache_dir,
 )
-from tools.parsing_metrics import normalized_mutual_info
+from lerobot_policy_ocn.tools.eval.metrics import normalized_mutual_info
 
 
 def test_best_paths_pay_the_switch_penalty_and_leave_padding_unlabelled():

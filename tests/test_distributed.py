@@ -2,7 +2,7 @@
 
 Under DDP each process computes the loss of its shard and the gradients are averaged. The policies'
 statistics over the batch (episode means, frame means, the usage balance) are the global batch's
-only when their sums run over every shard (`policies.distributed`). The in-process test runs two
+only when their sums run over every shard (`lerobot_policy_ocn.distributed`). The in-process test runs two
 gloo processes that each take an uneven shard of one batch (as held-out episodes leave a shard) and
 checks that the average of their gradients is the gradient of the whole batch in one process, for
 every loss the policies train; a plain per-shard mean is the control that must differ. The
@@ -59,7 +59,7 @@ def _rows(batch: dict, rows: list[int]) -> dict:
 
 
 def _ocn(**settings) -> nn.Module:
-    from policies.ocn import OCNConfig, OCNPolicy
+    from lerobot_policy_ocn.ocn import OCNConfig, OCNPolicy
 
     torch.manual_seed(0)
     config = OCNConfig(device="cpu", obs_encoder="identity", n_actions=4, n_options=3, hidden_size=8,
@@ -69,7 +69,7 @@ def _ocn(**settings) -> nn.Module:
 
 def _craft_recipe(final_phase: bool) -> tuple[nn.Module, Callable[[list[int]], Tensor]]:
     """OCN's Craft recipe (usage balance, expected NLL; in the final phase the settling cost), on its clock."""
-    from policies.schedules import PhaseScheduleConfig
+    from lerobot_policy_ocn.schedules import PhaseScheduleConfig
 
     policy = _ocn(recipe="craft", action_type="discrete", **_features(1))
     clock = PhaseScheduleConfig().build(torch.optim.SGD(policy.parameters(), lr=0.1), 6)
@@ -94,7 +94,7 @@ def _taught(hierarchy: str) -> tuple[nn.Module, Callable[[list[int]], Tensor]]:
 
 
 def _ompn() -> tuple[nn.Module, Callable[[list[int]], Tensor]]:
-    from policies.ompn import OMPNConfig, OMPNPolicy
+    from lerobot_policy_ocn.ompn import OMPNConfig, OMPNPolicy
 
     torch.manual_seed(0)
     policy = OMPNPolicy(OMPNConfig(device="cpu", obs_encoder="identity", action_type="discrete", n_actions=4,
@@ -105,7 +105,7 @@ def _ompn() -> tuple[nn.Module, Callable[[list[int]], Tensor]]:
 
 def _compile() -> tuple[nn.Module, Callable[[list[int]], Tensor]]:
     """compILE's loss with argmax samples (eval mode), so that the shards draw no noise of their own."""
-    from policies.compile import CompILEConfig, CompILEPolicy
+    from lerobot_policy_ocn.compile import CompILEConfig, CompILEPolicy
 
     torch.manual_seed(0)
     policy = CompILEPolicy(CompILEConfig(device="cpu", obs_encoder="identity", action_type="discrete", n_actions=4,
@@ -116,7 +116,7 @@ def _compile() -> tuple[nn.Module, Callable[[list[int]], Tensor]]:
 
 def _squared_global_sum() -> tuple[nn.Module, Callable[[list[int]], Tensor]]:
     """`global_sum` alone: (sum over the batch of w . x)^2, a function of the whole batch's sum."""
-    from policies.distributed import global_sum
+    from lerobot_policy_ocn.distributed import global_sum
 
     torch.manual_seed(0)
     layer, x = nn.Linear(STATE_DIM, 1, bias=False), torch.randn(len(LENGTHS), STATE_DIM)
@@ -197,7 +197,7 @@ def test_a_per_shard_mean_is_not_the_global_batchs(shard_results):
 def test_side_by_side_is_the_same_matrix_and_hands_back_gradients_in_the_weights_layout(n_modules):
     """The stacked weights as one matrix: the same values as the transposed stack, the same gradient, and
     that gradient in the weight's own strides (what DDP's buckets expect; the controller has N = 1)."""
-    from policies.ocn.cell import side_by_side
+    from lerobot_policy_ocn.ocn.cell import side_by_side
 
     weight = nn.Parameter(torch.randn(n_modules, 7, 5))
     transposed = nn.Parameter(weight.detach().clone())
@@ -241,10 +241,10 @@ def test_torchrun_trains_ocn_in_two_processes_as_one_with_the_same_global_batch(
     held-out split: the same loss at every logged step (3 decimals) and on the validation episodes
     afterwards (to 1e-4), weights within 1e-4 (measured: 1e-5; per-shard means: 6e-3), the final phase at
     the same step, no grad-stride warning; the checkpoint plays in `lerobot-eval`."""
-    from ocn_data.record_demos import main as record_demos
+    from lerobot_policy_ocn.ocn_data.record_demos import main as record_demos
     from safetensors.torch import load_file
 
-    from tools.episode_parsing import validation_nll
+    from lerobot_policy_ocn.tools.eval.parsing import validation_nll
 
     root = tmp_path / "ds"
     assert record_demos(["--tasks", "AC,CD,DA", "--episodes-per-task", "6", "--root", str(root), "--repo-id",

@@ -25,14 +25,13 @@ from lerobot.scripts.lerobot_eval import rollout
 from lerobot.utils.constants import ACTION, OBS_STATE
 from torch import nn
 
-import lerobot_policy_ocn  # noqa: F401  (registers `ocn` and `craft` as LeRobot's CLIs do)
-from envs.craft import CraftEnv, CraftExpert, parse_task, task_description
-from envs.craft.lerobot_config import CraftEnvConfig
-from envs.craft.lerobot_env import action_index
-from ocn_data.episodes_table import load_episodes, split_episodes
-from ocn_data.record_demos import main as record_demos
-from policies.ocn import OCNPolicy
-from tools.episode_parsing import load_policy
+from lerobot_policy_ocn.envs.craft import CraftEnv, CraftExpert, parse_task, task_description
+from lerobot_policy_ocn.envs.craft.lerobot_config import CraftEnvConfig
+from lerobot_policy_ocn.envs.craft.lerobot_env import action_index
+from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+from lerobot_policy_ocn.ocn_data.record_demos import main as record_demos
+from lerobot_policy_ocn.ocn import OCNPolicy
+from lerobot_policy_ocn.tools.eval.parsing import load_policy
 from conftest import run_cli
 
 BIN = Path(sys.executable).parent
@@ -145,7 +144,7 @@ def test_plain_lerobot_train_trains_the_craft_recipe_and_settles_in_its_final_st
 def test_the_policy_trains_on_the_whole_episodes_of_the_frames_lerobot_samples(demos):
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
     from lerobot.policies.factory import make_policy
-    from policies.ocn import OCNConfig
+    from lerobot_policy_ocn.ocn import OCNConfig
 
     meta = LeRobotDatasetMetadata(REPO_ID, root=demos)
     policy = make_policy(OCNConfig(device="cpu", hidden_size=8, mlp_hidden_size=8), ds_meta=meta)
@@ -172,9 +171,9 @@ def test_the_policy_trains_on_the_whole_episodes_of_the_frames_lerobot_samples(d
 def test_ocn_eval_scores_a_hil_checkpoint(trained, tmp_path):
     """A HIL checkpoint is an OCN checkpoint with `hierarchy="hil"` (same layout): the trained OCN's
     weights under HIL's schedule, saved with its processors, parse and roll out through ocn-eval."""
-    from tools.episode_parsing import load_ocn
-    from tools.ocn_eval import main as ocn_eval
-    from tools.ocn_finetune import save_checkpoint
+    from lerobot_policy_ocn.tools.eval.parsing import load_ocn
+    from lerobot_policy_ocn.tools.cli.ocn_eval import main as ocn_eval
+    from lerobot_policy_ocn.tools.cli.ocn_finetune import save_checkpoint
 
     root, checkpoint = trained
     source, preprocessor, postprocessor = load_ocn(checkpoint)
@@ -371,7 +370,7 @@ def test_ocn_eval_names_bad_input(trained, tmp_path, capsys):
         capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode == 2 and "no split 'test'" in proc.stderr
-    from tools.ocn_eval import main as ocn_eval
+    from lerobot_policy_ocn.tools.cli.ocn_eval import main as ocn_eval
 
     args = ["--policy", str(checkpoint), "--root", str(root), "--repo-id", REPO_ID, "--out", str(tmp_path / "o.json")]
     assert ocn_eval([*args, "--oracle-tasks", "AD"]) == 2  # D is no subtask of the dataset's AC

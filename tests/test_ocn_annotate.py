@@ -14,13 +14,13 @@ from huggingface_hub import DatasetCard
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.collate import lerobot_collate_fn
 
-from envs.craft.world import SUBTASK_NAMES
-from ocn_data.episodes_table import load_episodes, split_episodes
-from ocn_data.record_demos import main as record_demos
-from tools import console_script
-from policies.ocn import OCNConfig
-from tools.episode_parsing import load_ocn, parse_episodes
-from tools.ocn_annotate import main as ocn_annotate
+from lerobot_policy_ocn.envs.craft.world import SUBTASK_NAMES
+from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+from lerobot_policy_ocn.ocn_data.record_demos import main as record_demos
+from lerobot_policy_ocn.tools import console_script
+from lerobot_policy_ocn.ocn import OCNConfig
+from lerobot_policy_ocn.tools.eval.parsing import load_ocn, parse_episodes
+from lerobot_policy_ocn.tools.cli.ocn_annotate import main as ocn_annotate
 
 torch.set_num_threads(1)
 

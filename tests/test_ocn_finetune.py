@@ -11,12 +11,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from envs.craft.batch import CraftBatch
-from envs.craft.world import parse_task, task_description
+from lerobot_policy_ocn.envs.craft.batch import CraftBatch
+from lerobot_policy_ocn.envs.craft.world import parse_task, task_description
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_STATE
-from tools.episode_parsing import load_ocn, load_policy
-from tools.ocn_finetune import main, merge_option_pools, save_checkpoint
+from lerobot_policy_ocn.tools.eval.parsing import load_ocn, load_policy
+from lerobot_policy_ocn.tools.cli.ocn_finetune import main, merge_option_pools, save_checkpoint
 
 torch.set_num_threads(1)
 
@@ -249,7 +249,7 @@ def test_finetuning_is_seeded(ocn_checkpoint, tmp_path):
 def test_an_interrupted_run_resumes_exactly_where_it_stopped(ocn_checkpoint, tmp_path, monkeypatch, capsys):
     """A run stopped in its third iteration and resumed with --resume runs only the iterations left and ends
     with the curve and weights of the same run left alone; other settings, or nothing to resume, are refused."""
-    from tools.ppo import PPOTrainer
+    from lerobot_policy_ocn.tools.rl.ppo import PPOTrainer
 
     def argv(out: Path, *changes: str) -> list[str]:
         return ["--checkpoint", str(ocn_checkpoint), "--tasks", "ADC", "--frames", "400", "--envs", "4",
@@ -372,7 +372,7 @@ def test_flat_ppo_writes_the_same_curve_and_a_checkpoint_of_primitive_actions(tm
 
 
 def test_controller_report_accounts_for_every_step_and_names_each_options_subtask(finetuned, tmp_path):
-    from tools.controller_report import main as controller_report
+    from lerobot_policy_ocn.tools.research.controller_report import main as controller_report
 
     out = tmp_path / "report.json"
     assert controller_report(["--policy", str(finetuned / "pretrained_model"), "--tasks", "ADC,CAD", "--episodes", "6",

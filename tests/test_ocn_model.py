@@ -9,13 +9,13 @@ from torch.nn import functional as F
 from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
-from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
-from policies.ocn.cell import StackedCell, side_by_side, stacked_linear
-from policies.ocn.configuration_ocn import RECIPE_TABLE
-from policies.ocn.heads import DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, sample_index
-from policies.ocn.modeling_ocn import settle_penalty, usage_imbalance
-from policies.ocn.recurrence import OCNState, StepOutput
-from tools.bench.models import use_looped_cells
+from lerobot_policy_ocn.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
+from lerobot_policy_ocn.ocn.cell import StackedCell, side_by_side, stacked_linear
+from lerobot_policy_ocn.ocn.configuration_ocn import RECIPE_TABLE
+from lerobot_policy_ocn.ocn.heads import DiscreteHead, GaussianHead, expected_log_prob, mixture_log_prob, sample_index
+from lerobot_policy_ocn.ocn.modeling_ocn import settle_penalty, usage_imbalance
+from lerobot_policy_ocn.ocn.recurrence import OCNState, StepOutput
+from lerobot_policy_ocn.tools.bench.models import use_looped_cells
 
 torch.set_num_threads(1)
 
@@ -491,7 +491,7 @@ def test_computing_only_real_frames_changes_no_output_read_and_no_gradient(hiera
 
 
 def test_craft_features_read_as_their_set_entries_give_the_dense_first_layers_loss_and_gradients():
-    from envs.craft import CraftEnv
+    from lerobot_policy_ocn.envs.craft import CraftEnv
 
     craft_state = {OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))}
     policy = make_policy(obs_encoder="craft", n_actions=5, input_features=craft_state)
@@ -723,8 +723,8 @@ def test_config_defaults_and_registration():
 
 
 def test_full_view_encoder_feeds_the_exact_map_and_keeps_craft_states_unnormalised():
-    from envs.craft import CraftEnv
-    from envs.craft.observation import FULL_VIEW_DIM, full_view_features
+    from lerobot_policy_ocn.envs.craft import CraftEnv
+    from lerobot_policy_ocn.envs.craft.observation import FULL_VIEW_DIM, full_view_features
 
     craft_state = {OBS_STATE: PolicyFeature(FeatureType.STATE, (81,))}
     policy = make_policy(obs_encoder="craft_full_view", n_actions=5, input_features=craft_state)
@@ -765,7 +765,7 @@ def test_task_strings_survive_the_preprocessor():
 
 
 def test_craft_policy_acts_in_the_craft_env():
-    craft = pytest.importorskip("envs.craft.env")
+    craft = pytest.importorskip("lerobot_policy_ocn.envs.craft.env")
     env = craft.CraftEnv(task="AC")
     obs, _ = env.reset(seed=0)
     config = OCNConfig(

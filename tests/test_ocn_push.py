@@ -15,10 +15,10 @@ from huggingface_hub import DatasetCard, ModelCard
 from lerobot.configs.default import DatasetConfig
 from lerobot.configs.train import TrainPipelineConfig
 
-from tools import console_script
-from tools.episode_parsing import load_ocn
-from tools.ocn_eval import main as ocn_eval
-from tools.ocn_push import main as ocn_push
+from lerobot_policy_ocn.tools import console_script
+from lerobot_policy_ocn.tools.eval.parsing import load_ocn
+from lerobot_policy_ocn.tools.cli.ocn_eval import main as ocn_eval
+from lerobot_policy_ocn.tools.cli.ocn_push import main as ocn_push
 
 TRAIN_COMMAND = "lerobot-train --policy.type=ocn --dataset.repo_id=local/craft_small --steps=3000"
 

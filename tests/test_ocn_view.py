@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from envs.craft.world import SUBTASK_LETTERS, SUBTASK_NAMES
-from ocn_data.episodes_table import load_episodes, split_episodes
+from lerobot_policy_ocn.envs.craft.world import SUBTASK_LETTERS, SUBTASK_NAMES
+from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
 from rrd_reading import forward_fill, read_rrd, values
-from tools.ocn_view import main
-from tools.view_scenes import craft_scene_images
+from lerobot_policy_ocn.tools.cli.ocn_view import main
+from lerobot_policy_ocn.tools.viz.scenes import craft_scene_images
 
 CRAFT_REPO_ID = "local/craft_small"
 
@@ -23,7 +23,7 @@ CRAFT_REPO_ID = "local/craft_small"
 @pytest.fixture(scope="module")
 def expected(craft_dataset, ocn_checkpoint):
     """The val episodes and the checkpoint's parse of them, computed without ocn-view."""
-    from tools.episode_parsing import load_ocn, parse_episodes
+    from lerobot_policy_ocn.tools.eval.parsing import load_ocn, parse_episodes
 
     episodes = load_episodes(craft_dataset, split_episodes(craft_dataset, "val"))
     policy, preprocessor, _ = load_ocn(ocn_checkpoint)
@@ -132,7 +132,7 @@ def test_ground_truth_only_without_policy(craft_dataset, tmp_path):
 
 
 def test_scene_is_the_env_frame():
-    from envs.craft.env import CraftEnv
+    from lerobot_policy_ocn.envs.craft.env import CraftEnv
 
     env = CraftEnv(task="AC", render_mode="rgb_array")
     observation, _ = env.reset(seed=7)
@@ -144,7 +144,7 @@ def test_scene_is_the_env_frame():
 @pytest.fixture
 def unknown_task_dataset(tmp_path) -> Path:
     """A dataset of task DA, which the fixture checkpoint (tasks AC and CD) was not trained on."""
-    from ocn_data.record_demos import main as record_demos
+    from lerobot_policy_ocn.ocn_data.record_demos import main as record_demos
 
     root = tmp_path / "da"
     assert record_demos(["--tasks", "DA", "--episodes-per-task", "2", "--root", str(root),

@@ -13,18 +13,19 @@ import pytest
 import torch
 from torch.nn import functional as F
 
-import lerobot_policy_ocn  # noqa: F401  (registers `ompn` and `craft` as LeRobot's CLIs do)
 from conftest import CRAFT_REPO_ID, craft_rollout, episode_windows, reload_checkpoint, train_on_craft
 from lerobot.configs import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
-from ocn_data.episodes_table import load_episodes, split_episodes
-from policies.ompn import OMPNConfig, OMPNPolicy
-from policies.ompn.memory import stick_breaking
-from policies.ompn.modeling_ompn import expansion_boundaries, threshold_boundaries
-from tools import ocn_eval
-from tools.episode_parsing import Segmentation, load_ocn, load_policy, score_segmentations, segment_episodes
-from tools.parsing_metrics import boundaries_from_labels, parsing_scores
+from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+from lerobot_policy_ocn.ompn import OMPNConfig, OMPNPolicy
+from lerobot_policy_ocn.ompn.memory import stick_breaking
+from lerobot_policy_ocn.ompn.modeling_ompn import expansion_boundaries, threshold_boundaries
+from lerobot_policy_ocn.tools.cli import ocn_eval
+from lerobot_policy_ocn.tools.eval.parsing import (
+    Segmentation, load_ocn, load_policy, score_segmentations, segment_episodes,
+)
+from lerobot_policy_ocn.tools.eval.metrics import boundaries_from_labels, parsing_scores
 
 torch.set_num_threads(1)
 

@@ -12,18 +12,18 @@ import pytest
 import torch
 
 from conftest import reload_checkpoint, untrained_checkpoint
-from envs.craft.batch import CraftBatch
-from envs.craft.observation import OBS_DIM
-from envs.craft.world import parse_task, task_description
+from lerobot_policy_ocn.envs.craft.batch import CraftBatch
+from lerobot_policy_ocn.envs.craft.observation import OBS_DIM
+from lerobot_policy_ocn.envs.craft.world import parse_task, task_description
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
-from policies.ompn import OMPNConfig, OMPNPolicy
+from lerobot_policy_ocn.ompn import OMPNConfig, OMPNPolicy
 from test_ocn_finetune import ADC, CAD, assert_refused, decisions_match_frames, lerobot_eval_rollout, save_variant
 from test_ompn import make_policy
 from test_ppo import CRAFT, TASK, WoodAhead, wood_success_before_and_after
-from tools.ocn_finetune import main
-from tools.ompn_rl import TASK_EMBEDDING, MemoryActor, ompn_for_tasks
-from tools.ppo import PPOConfig, PPOTrainer, ValueHead, collect
+from lerobot_policy_ocn.tools.cli.ocn_finetune import main
+from lerobot_policy_ocn.tools.rl.ompn_rl import TASK_EMBEDDING, MemoryActor, ompn_for_tasks
+from lerobot_policy_ocn.tools.rl.ppo import PPOConfig, PPOTrainer, ValueHead, collect
 from conftest import CRAFT_STATE
 
 torch.set_num_threads(1)

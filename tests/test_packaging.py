@@ -40,14 +40,14 @@ def unpacked_wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_wheel_ships_every_card_template(unpacked_wheel: Path) -> None:
-    shipped = sorted(p.name for p in (unpacked_wheel / "datacards").glob("*.md"))
+    shipped = sorted(p.name for p in (unpacked_wheel / "lerobot_policy_ocn" / "datacards").glob("*.md"))
     assert shipped == TEMPLATES
 
 
 def test_installed_datacard_module_finds_its_templates(unpacked_wheel: Path) -> None:
     """`ocn_data.datacard` imported from the wheel (not the checkout) renders from the wheel's templates."""
     probe = (
-        "import jinja2, ocn_data.datacard as d; "
+        "import jinja2, lerobot_policy_ocn.ocn_data.datacard as d; "
         "print(d.__file__); "
         "print(sorted(jinja2.Environment(loader=jinja2.FileSystemLoader(d.DATACARDS)).list_templates()))"
     )
@@ -61,3 +61,29 @@ def test_installed_datacard_module_finds_its_templates(unpacked_wheel: Path) -> 
     module_file, templates = done.stdout.strip().splitlines()
     assert Path(module_file).is_relative_to(unpacked_wheel)
     assert templates == str(TEMPLATES)
+
+
+def test_a_users_own_envs_and_tools_folders_do_not_shadow_the_plugin(tmp_path: Path) -> None:
+    """Installed, the project is one import root, `lerobot_policy_ocn`: a user's project with packages named
+    like this repository's folders (`envs`, `tools`, `ocn_data`, `policies`), first on the path as the working
+    directory is for `python -c` and `python -m`, changes nothing."""
+    for name in ("envs", "tools", "ocn_data", "policies"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "__init__.py").write_text(f"raise ImportError('the user project’s own {name}')\n")
+    probe = ("import lerobot, lerobot_policy_ocn; from lerobot.configs.policies import PreTrainedConfig; "
+             "from lerobot.envs.configs import EnvConfig; "
+             "print(PreTrainedConfig.get_choice_class('ocn').__module__, "
+             "EnvConfig.get_choice_class('craft').__module__)")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["lerobot_policy_ocn.ocn.configuration_ocn",
+                                   "lerobot_policy_ocn.envs.craft.lerobot_config"]
+
+
+def test_the_root_registers_only_where_lerobot_is_loaded_so_commands_start_without_torch() -> None:
+    probe = ("import sys, lerobot_policy_ocn.tools.cli.ocn_eval; print('torch' in sys.modules); "
+             "lerobot_policy_ocn.register(); from lerobot.configs.policies import PreTrainedConfig; "
+             "print(PreTrainedConfig.get_choice_class('ocn').__name__)")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["False", "OCNConfig"]

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from tools.parsing_metrics import (
+from lerobot_policy_ocn.tools.eval.metrics import (
     boundaries_from_labels,
     f1_with_tolerance,
     normalized_mutual_info,
@@ -94,8 +94,8 @@ def test_option_table_matches_options_to_subtasks():
 
 
 def test_parse_statistics_shows_a_pair_of_options_sharing_two_subtasks():
-    from ocn_data.episodes_table import EpisodeArrays
-    from tools.episode_parsing import Segmentation, parse_statistics
+    from lerobot_policy_ocn.ocn_data.episodes_table import EpisodeArrays
+    from lerobot_policy_ocn.tools.eval.parsing import Segmentation, parse_statistics
 
     # Two episodes: subtask ids 0 then 3 (4 + 2 frames, then padding), and 0 then 2 (3 + 3 frames).
     subtask_id = np.array([[0, 0, 0, 0, 3, 3, -1], [0, 0, 0, 2, 2, 2, 2]])
@@ -123,8 +123,8 @@ def test_parse_statistics_shows_a_pair_of_options_sharing_two_subtasks():
 
 
 def test_boundary_offsets_place_each_true_boundary_and_split_them_by_the_move_before_it():
-    from ocn_data.episodes_table import EpisodeArrays
-    from tools.episode_parsing import Segmentation, parse_statistics
+    from lerobot_policy_ocn.ocn_data.episodes_table import EpisodeArrays
+    from lerobot_policy_ocn.tools.eval.parsing import Segmentation, parse_statistics
 
     # Inner true boundaries (last step of a subtask that is not the episode's last): episode 0 at
     # step 2, episode 1 at steps 1 and 3, episode 2 at step 0.
@@ -149,8 +149,8 @@ def test_boundary_offsets_place_each_true_boundary_and_split_them_by_the_move_be
 
 
 def test_parse_statistics_tells_options_that_follow_the_moves_from_options_that_follow_the_subtasks():
-    from ocn_data.episodes_table import EpisodeArrays
-    from tools.episode_parsing import Segmentation, parse_statistics
+    from lerobot_policy_ocn.ocn_data.episodes_table import EpisodeArrays
+    from lerobot_policy_ocn.tools.eval.parsing import Segmentation, parse_statistics
 
     # Subtask 1 comes after 0 in the first episode and after 2 in the second (2 + 2 frames each).
     subtask_id = np.array([[0, 0, 1, 1], [2, 2, 1, 1]])

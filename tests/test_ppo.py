@@ -4,14 +4,16 @@ import numpy as np
 import pytest
 import torch
 
-from envs.craft.batch import CraftBatch
-from envs.craft.world import DOWN, EMPTY, LEFT, UP, USE, WOOD
+from lerobot_policy_ocn.envs.craft.batch import CraftBatch
+from lerobot_policy_ocn.envs.craft.world import DOWN, EMPTY, LEFT, UP, USE, WOOD
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
-from policies.ocn import OCNConfig, OCNPolicy
-from tools.ocn_finetune import primitive_action_pool
-from tools.craft_rollouts import craft_world
-from tools.ppo import Acting, Decisions, PPOConfig, PPOTrainer, collect, finetune, replay_controller, semi_mdp_gae
+from lerobot_policy_ocn.ocn import OCNConfig, OCNPolicy
+from lerobot_policy_ocn.tools.cli.ocn_finetune import primitive_action_pool
+from lerobot_policy_ocn.tools.rl.craft_rollouts import craft_world
+from lerobot_policy_ocn.tools.rl.ppo import (
+    Acting, Decisions, PPOConfig, PPOTrainer, collect, finetune, replay_controller, semi_mdp_gae,
+)
 from conftest import CRAFT_STATE
 
 torch.set_num_threads(1)

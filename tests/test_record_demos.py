@@ -17,11 +17,11 @@ from huggingface_hub import DatasetCard
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.collate import lerobot_collate_fn
 
-from envs.craft.world import parse_task, task_description
-from ocn_data.mcap_log import read_mcap_messages
+from lerobot_policy_ocn.envs.craft.world import parse_task, task_description
+from lerobot_policy_ocn.ocn_data.mcap_log import read_mcap_messages
 from unwritable import read_only_folder
 
-RECORD = [sys.executable, "-m", "ocn_data.record_demos"]
+RECORD = [sys.executable, "-m", "lerobot_policy_ocn.ocn_data.record_demos"]
 
 
 def run_record(*args: str, check: bool = True) -> subprocess.CompletedProcess:
@@ -169,7 +169,7 @@ def test_bad_input_is_a_clear_error(tmp_path, args, message):
 
 
 def test_unwritable_outputs_are_refused_before_anything_is_written(tmp_path, capsys):
-    from ocn_data.record_demos import main
+    from lerobot_policy_ocn.ocn_data.record_demos import main
 
     root, blocked, a_file = tmp_path / "new", tmp_path / "blocked", tmp_path / "a_file"
     a_file.write_text("not a folder")
@@ -218,8 +218,8 @@ def test_interrupted_recording_keeps_finished_episodes(tmp_path):
 
 
 def test_dart_noise_executes_random_actions_but_records_the_experts():
-    from envs.craft import CraftExpert
-    from ocn_data.craft_recorder import CraftRecorder
+    from lerobot_policy_ocn.envs.craft import CraftExpert
+    from lerobot_policy_ocn.ocn_data.craft_recorder import CraftRecorder
 
     def recorder(noise: float) -> CraftRecorder:
         return CraftRecorder([(0, 2), (2, 3)], 200, seed=5, batch_size=400, dart_noise=noise)
@@ -355,7 +355,7 @@ def test_dial_mcap_and_card(dial_recorded):
     ],
 )
 def test_dial_bad_input_is_a_one_line_error(tmp_path, capsys, args, message):
-    from ocn_data.record_demos import main
+    from lerobot_policy_ocn.ocn_data.record_demos import main
 
     with pytest.raises(SystemExit) as exit_info:
         main(["--env", "dial", "--root", str(tmp_path / "new"), "--repo-id", "local/x", *args])

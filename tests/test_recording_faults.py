@@ -24,16 +24,16 @@ import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from ocn_data import durable
-from ocn_data.doctor import diagnose
-from ocn_data.doctor import main as doctor
-from ocn_data.lerobot_writer import FAULT_ENV
-from ocn_data.mcap_log import log_is_finished, read_mcap_messages
-from ocn_data.provenance import load_provenance
-from ocn_data.record_demos import main as record_demos
+from lerobot_policy_ocn.ocn_data import durable
+from lerobot_policy_ocn.ocn_data.doctor import diagnose
+from lerobot_policy_ocn.ocn_data.doctor import main as doctor
+from lerobot_policy_ocn.ocn_data.lerobot_writer import FAULT_ENV
+from lerobot_policy_ocn.ocn_data.mcap_log import log_is_finished, read_mcap_messages
+from lerobot_policy_ocn.ocn_data.provenance import load_provenance
+from lerobot_policy_ocn.ocn_data.record_demos import main as record_demos
 
 REPO_ID = "local/faults"
-RECORD = [sys.executable, "-m", "ocn_data.record_demos"]
+RECORD = [sys.executable, "-m", "lerobot_policy_ocn.ocn_data.record_demos"]
 
 
 def recording(root: Path, per_task: int, *extra: str) -> list[str]:

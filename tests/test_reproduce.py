@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from tools.reproduce import main, runs
-from tools.reproduce.clones import Model
-from tools.reproduce.imitation import VARIANTS
-from tools.reproduce.runs import Finetuning, Training, train_command
+from lerobot_policy_ocn.tools.reproduce import main, runs
+from lerobot_policy_ocn.tools.reproduce.clones import Model
+from lerobot_policy_ocn.tools.reproduce.imitation import VARIANTS
+from lerobot_policy_ocn.tools.reproduce.runs import Finetuning, Training, train_command
 
 TINY = ["--episodes-per-task", "20", "--steps", "20", "--batch-size", "8", "--seeds", "1"]
 CLONE = "train/craft_s1/ocn/seed1"
@@ -143,7 +143,7 @@ def test_a_flag_that_is_not_a_model_size_or_baseline_never_names_a_clone():
 
 def test_help_imports_neither_torch_nor_lerobot():
     """What keeps `--help` instant (its time is a benchmark's business, not a test's)."""
-    probe = ("import sys; from tools.reproduce import build_parser; parser = build_parser(); "
+    probe = ("import sys; from lerobot_policy_ocn.tools.reproduce import build_parser; parser = build_parser(); "
              "print(any(name.split('.')[0] in ('torch', 'lerobot') for name in sys.modules))")
     heavy = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.split()
     assert heavy == ["False"]

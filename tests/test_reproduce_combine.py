@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from tools.reproduce import curves, finetune, imitation, main
+from lerobot_policy_ocn.tools.reproduce import curves, finetune, imitation, main
 
 LABELS = finetune.SETTINGS["s1"].labels
 SETTINGS = {"frames": 1000, "envs": 8, "episodes_per_task": 20, "steps": 20, "batch_size": 8}

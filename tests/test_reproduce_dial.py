@@ -7,10 +7,10 @@ import shlex
 
 import pytest
 
-from tools.bench.common import RESULTS
-from tools.reproduce import dial, main
-from tools.reproduce.finetune import CLONED
-from tools.reproduce.runs import train_command
+from lerobot_policy_ocn.tools.bench.common import RESULTS
+from lerobot_policy_ocn.tools.reproduce import dial, main
+from lerobot_policy_ocn.tools.reproduce.finetune import CLONED
+from lerobot_policy_ocn.tools.reproduce.runs import train_command
 
 
 def _policy_flags(split: str, method: str) -> set[str]:

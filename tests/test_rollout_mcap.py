@@ -6,8 +6,8 @@ import numpy as np
 from mcap.reader import make_reader
 
 from conftest import CRAFT_REPO_ID
-from ocn_data.mcap_log import read_mcap_messages
-from tools.ocn_eval import main as ocn_eval
+from lerobot_policy_ocn.ocn_data.mcap_log import read_mcap_messages
+from lerobot_policy_ocn.tools.cli.ocn_eval import main as ocn_eval
 
 ROLLOUTS = 3
 

@@ -14,7 +14,7 @@ import pytest
 from lerobot.policies.act.configuration_act import ACTConfig
 
 from conftest import CRAFT_REPO_ID
-from tools import ocn_annotate, ocn_eval, ocn_finetune, ocn_view
+from lerobot_policy_ocn.tools.cli import ocn_annotate, ocn_eval, ocn_finetune, ocn_view
 from unwritable import read_only_folder
 
 TOOLS: dict[str, Callable[[list[str]], int]] = {

@@ -1,7 +1,7 @@
 """What the tools need to know of a world (Craft or Dial), chosen once per dataset or checkpoint.
 
 `ocn-eval`, `ocn-view` and `ocn-annotate` read the world from the dataset
-(`ocn_data.episodes_table.dataset_world`), `ocn-finetune` from the checkpoint's state and action
+(`lerobot_policy_ocn.ocn_data.episodes_table.dataset_world`), `ocn-finetune` from the checkpoint's state and action
 widths (`policy_world`: a finetuned checkpoint has no dataset beside it), and get one `World` here:
 how subtasks are named, which subtasks a task string holds, how results name a task, how a list of
 new tasks is written, which batched rollouts act in the world and which rerun scene draws it.
@@ -16,12 +16,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ocn_data.episodes_table import dataset_world
-from ocn_data.provenance import load_provenance
+from lerobot_policy_ocn.ocn_data.episodes_table import dataset_world
+from lerobot_policy_ocn.ocn_data.provenance import load_provenance
 
 if TYPE_CHECKING:
-    from tools.rollouts import RolloutWorld
-    from tools.view_scenes import Scene
+    from lerobot_policy_ocn.tools.rl.rollouts import RolloutWorld
+    from lerobot_policy_ocn.tools.viz.scenes import Scene
 
 
 @dataclass(frozen=True)
@@ -62,8 +62,8 @@ class World:
 
 def craft(mode: str = "paper") -> World:
     """Craft in world mode `mode` ("paper" or "full")."""
-    from envs.craft.observation import OBS_DIM
-    from envs.craft.world import (
+    from lerobot_policy_ocn.envs.craft.observation import OBS_DIM
+    from lerobot_policy_ocn.envs.craft.world import (
         SUBTASK_LETTERS,
         SUBTASK_NAMES,
         parse_task,
@@ -73,12 +73,12 @@ def craft(mode: str = "paper") -> World:
     )
 
     def rollouts() -> RolloutWorld:
-        from tools.craft_rollouts import craft_world
+        from lerobot_policy_ocn.tools.rl.craft_rollouts import craft_world
 
         return craft_world(mode)
 
     def scene() -> Scene:
-        from tools.view_scenes import CraftScene
+        from lerobot_policy_ocn.tools.viz.scenes import CraftScene
 
         return CraftScene()
 
@@ -101,17 +101,19 @@ def craft(mode: str = "paper") -> World:
 
 def dial() -> World:
     """Dial: a subtask is a digit, a task a PIN, named in results by its digits ("12")."""
-    from envs.dial.batch import OBS_DIM
-    from envs.dial.scene import N_JOINTS
-    from envs.dial.task import DIGITS, SUBTASK_NAMES, parse_pin, parse_pin_list, pin_code, task_description
+    from lerobot_policy_ocn.envs.dial.batch import OBS_DIM
+    from lerobot_policy_ocn.envs.dial.scene import N_JOINTS
+    from lerobot_policy_ocn.envs.dial.task import (
+        DIGITS, SUBTASK_NAMES, parse_pin, parse_pin_list, pin_code, task_description,
+    )
 
     def rollouts() -> RolloutWorld:
-        from tools.dial_rollouts import DIAL_WORLD
+        from lerobot_policy_ocn.tools.rl.dial_rollouts import DIAL_WORLD
 
         return DIAL_WORLD
 
     def scene() -> Scene:
-        from tools.view_scenes import DialScene
+        from lerobot_policy_ocn.tools.viz.scenes import DialScene
 
         return DialScene()
 

@@ -27,4 +27,4 @@ def minigrid_installed() -> bool:
 
 
 if minigrid_installed() and BABYAI_ENV_ID not in registry:
-    register(id=BABYAI_ENV_ID, entry_point="envs.babyai.env:BabyAIEnv")
+    register(id=BABYAI_ENV_ID, entry_point="lerobot_policy_ocn.envs.babyai.env:BabyAIEnv")

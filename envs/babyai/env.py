@@ -16,10 +16,10 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from envs.babyai.level import OpenPickupSeqLevel
-from envs.babyai.minigrid_api import COLOR_TO_IDX, OBJECT_TO_IDX, STATE_TO_IDX, Actions
-from envs.babyai.observation import STATE_DIM, VIEW_SIZE, encode
-from envs.babyai.subgoals import SubgoalTracker
+from lerobot_policy_ocn.envs.babyai.level import OpenPickupSeqLevel
+from lerobot_policy_ocn.envs.babyai.minigrid_api import COLOR_TO_IDX, OBJECT_TO_IDX, STATE_TO_IDX, Actions
+from lerobot_policy_ocn.envs.babyai.observation import STATE_DIM, VIEW_SIZE, encode
+from lerobot_policy_ocn.envs.babyai.subgoals import SubgoalTracker
 
 N_ACTIONS = len(Actions)
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from envs.babyai.env import BabyAIEnv
-from envs.babyai.minigrid_api import BabyAIBot
+from lerobot_policy_ocn.envs.babyai.env import BabyAIEnv
+from lerobot_policy_ocn.envs.babyai.minigrid_api import BabyAIBot
 
 
 @dataclass

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from envs.babyai.minigrid_api import (
+from lerobot_policy_ocn.envs.babyai.minigrid_api import (
     COLOR_NAMES,
     AndInstr,
     BeforeInstr,
@@ -28,7 +28,9 @@ from envs.babyai.minigrid_api import (
     PickupInstr,
     RoomGridLevel,
 )
-from envs.babyai.missions import AND_THEN, DOOR_COLORS, MISSIONS, PICKUP_OBJECTS, SINGLE, Mission, parse_mission
+from lerobot_policy_ocn.envs.babyai.missions import (
+    AND_THEN, DOOR_COLORS, MISSIONS, PICKUP_OBJECTS, SINGLE, Mission, parse_mission,
+)
 
 ROOM_SIZE = 7
 CENTER = (1, 1)

@@ -1,10 +1,10 @@
-"""The one place that imports minigrid: everything envs.babyai uses from it, re-exported.
+"""The one place that imports minigrid: everything lerobot_policy_ocn.envs.babyai uses from it, re-exported.
 
 Where minigrid is missing, importing this module (and so any module built on it) raises
 `MinigridMissing` with its install hint instead of a bare ModuleNotFoundError.
 """
 
-from envs.babyai import MinigridMissing
+from lerobot_policy_ocn.envs.babyai import MinigridMissing
 
 try:
     from minigrid.core.actions import Actions

@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from envs.babyai.env import BabyAIEnv
+from lerobot_policy_ocn.envs.babyai.env import BabyAIEnv
 
 
 class MissionPolicy(Protocol):

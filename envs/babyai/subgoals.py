@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.babyai.minigrid_api import ActionInstr, AndInstr, BeforeInstr, Instr
+from lerobot_policy_ocn.envs.babyai.minigrid_api import ActionInstr, AndInstr, BeforeInstr, Instr
 
 SUCCESS = "success"
 

@@ -1,11 +1,11 @@
 """Craft grid world (psketch / OMPN setup): batched simulator, gym wrappers, expert, features."""
 
-from envs.craft.batch import CraftBatch
-from envs.craft.env import CraftEnv, CraftVectorEnv, craft_observation_space
-from envs.craft.expert import CraftExpert
-from envs.craft.observation import OBS_DIM, OBS_NAMES, OMPN_DIM, ompn_features
-from envs.craft.render import render_batch, render_state
-from envs.craft.world import (
+from lerobot_policy_ocn.envs.craft.batch import CraftBatch
+from lerobot_policy_ocn.envs.craft.env import CraftEnv, CraftVectorEnv, craft_observation_space
+from lerobot_policy_ocn.envs.craft.expert import CraftExpert
+from lerobot_policy_ocn.envs.craft.observation import OBS_DIM, OBS_NAMES, OMPN_DIM, ompn_features
+from lerobot_policy_ocn.envs.craft.render import render_batch, render_state
+from lerobot_policy_ocn.envs.craft.world import (
     ACTION_NAMES,
     KIND_NAMES,
     N_ACTIONS,

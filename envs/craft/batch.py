@@ -31,10 +31,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from envs.batching import EpisodeBatch, env_rng, reset_ids
-from envs.craft.layout import sample_map
-from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING, INVENTORY, INVENTORY_FIRST_KIND, OBS_DIM
-from envs.craft.world import (
+from lerobot_policy_ocn.envs.batching import EpisodeBatch, env_rng, reset_ids
+from lerobot_policy_ocn.envs.craft.layout import sample_map
+from lerobot_policy_ocn.envs.craft.observation import (
+    AGENT_COL, AGENT_ROW, CELLS, FACING, INVENTORY, INVENTORY_FIRST_KIND, OBS_DIM,
+)
+from lerobot_policy_ocn.envs.craft.world import (
     AXE,
     BRIDGE,
     EMPTY,
@@ -122,7 +124,7 @@ class CraftBatch(EpisodeBatch):
         return self._target_kinds[self._arange, self.progress]
 
     def observe(self) -> np.ndarray:
-        """Compact observation (n, OBS_DIM) int64; layout in envs.craft.observation."""
+        """Compact observation (n, OBS_DIM) int64; layout in lerobot_policy_ocn.envs.craft.observation."""
         n = self.num_envs
         obs = np.empty((n, OBS_DIM), dtype=np.int64)
         obs[:, CELLS].reshape(n, INTERIOR_SIZE, INTERIOR_SIZE)[...] = self.grid[:, 1:-1, 1:-1]

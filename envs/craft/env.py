@@ -14,17 +14,17 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
-from envs.batch_vector import BatchVectorEnv
-from envs.craft.batch import CraftBatch
-from envs.craft.observation import OBS_DIM, OBS_HIGH
-from envs.craft.render import render_batch
-from envs.craft.world import N_ACTIONS, parse_task, task_code, task_description
+from lerobot_policy_ocn.envs.batch_vector import BatchVectorEnv
+from lerobot_policy_ocn.envs.craft.batch import CraftBatch
+from lerobot_policy_ocn.envs.craft.observation import OBS_DIM, OBS_HIGH
+from lerobot_policy_ocn.envs.craft.render import render_batch
+from lerobot_policy_ocn.envs.craft.world import N_ACTIONS, parse_task, task_code, task_description
 
 RENDER_FPS = 8
 
 
 def craft_observation_space() -> spaces.Box:
-    """Box of one compact observation (see envs.craft.observation for the layout)."""
+    """Box of one compact observation (see lerobot_policy_ocn.envs.craft.observation for the layout)."""
     return spaces.Box(low=np.zeros(OBS_DIM, dtype=np.int64), high=OBS_HIGH, shape=(OBS_DIM,), dtype=np.int64)
 
 

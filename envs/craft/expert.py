@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.craft.batch import CraftBatch
-from envs.craft.world import AXE, BRIDGE, EMPTY, GRID_SIZE, STONE, USE, WATER
+from lerobot_policy_ocn.envs.craft.batch import CraftBatch
+from lerobot_policy_ocn.envs.craft.world import AXE, BRIDGE, EMPTY, GRID_SIZE, STONE, USE, WATER
 
 UNREACHABLE = np.iinfo(np.int16).max
 # Flat-index offsets of the 4 neighbours, in move-action order (down, up, left, right).

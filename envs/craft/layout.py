@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.craft.world import (
+from lerobot_policy_ocn.envs.craft.world import (
     BOUNDARY,
     EMPTY,
     FACTORY,

@@ -10,9 +10,9 @@ from dataclasses import dataclass, field
 from lerobot.configs import PolicyFeature
 from lerobot.envs.configs import EnvConfig
 
-from envs import CRAFT_LEROBOT_ENV_ID
-from envs.craft.observation import OBS_DIM
-from envs.lerobot_env import StateEnvConfig, state_action_features
+from lerobot_policy_ocn.envs import CRAFT_LEROBOT_ENV_ID
+from lerobot_policy_ocn.envs.craft.observation import OBS_DIM
+from lerobot_policy_ocn.envs.lerobot_env import StateEnvConfig, state_action_features
 
 
 @EnvConfig.register_subclass("craft")

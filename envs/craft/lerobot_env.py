@@ -1,4 +1,4 @@
-"""CraftEnv as `lerobot-eval` drives it (see envs.lerobot_env): policy actions are float rows that
+"""CraftEnv as `lerobot-eval` drives it (see lerobot_policy_ocn.envs.lerobot_env): policy actions are float rows that
 hold one integral action index."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from envs.craft.env import CraftEnv
-from envs.craft.world import ACTION_NAMES, N_ACTIONS, default_max_steps
-from envs.lerobot_env import lerobot_env
+from lerobot_policy_ocn.envs.craft.env import CraftEnv
+from lerobot_policy_ocn.envs.craft.world import ACTION_NAMES, N_ACTIONS, default_max_steps
+from lerobot_policy_ocn.envs.lerobot_env import lerobot_env
 
 
 def action_indices(actions: Any) -> np.ndarray:

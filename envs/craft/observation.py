@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envs.craft.world import BOUNDARY, GRID_SIZE, INTERIOR_SIZE, KIND_NAMES, N_KINDS
+from lerobot_policy_ocn.envs.craft.world import BOUNDARY, GRID_SIZE, INTERIOR_SIZE, KIND_NAMES, N_KINDS
 
 if TYPE_CHECKING:
     import torch

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.craft.world import EMPTY, GRID_SIZE
+from lerobot_policy_ocn.envs.craft.world import EMPTY, GRID_SIZE
 
 TILE = 16
 

@@ -30,10 +30,12 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
-from envs.batching import EpisodeBatch, env_rng, reset_ids
-from envs.dial.poses import dial_poses
-from envs.dial.scene import FINGERTIP_SITE, N_JOINTS, TIMESTEP, dial_model, key_positions
-from envs.dial.task import DEFAULT_DIGITS, REWARDS, default_max_steps, parse_digits, parse_pin, sample_pin
+from lerobot_policy_ocn.envs.batching import EpisodeBatch, env_rng, reset_ids
+from lerobot_policy_ocn.envs.dial.poses import dial_poses
+from lerobot_policy_ocn.envs.dial.scene import FINGERTIP_SITE, N_JOINTS, TIMESTEP, dial_model, key_positions
+from lerobot_policy_ocn.envs.dial.task import (
+    DEFAULT_DIGITS, REWARDS, default_max_steps, parse_digits, parse_pin, sample_pin,
+)
 
 FRAME_SKIP = 20
 CONTROL_DT = FRAME_SKIP * TIMESTEP

@@ -14,11 +14,11 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import AutoresetMode
 
-from envs.batch_vector import BatchVectorEnv
-from envs.dial.batch import CONTROL_DT, OBS_DIM, DialBatch
-from envs.dial.render import DialRenderer
-from envs.dial.scene import N_JOINTS
-from envs.dial.task import DEFAULT_DIGITS, parse_pin, pin_code, task_description
+from lerobot_policy_ocn.envs.batch_vector import BatchVectorEnv
+from lerobot_policy_ocn.envs.dial.batch import CONTROL_DT, OBS_DIM, DialBatch
+from lerobot_policy_ocn.envs.dial.render import DialRenderer
+from lerobot_policy_ocn.envs.dial.scene import N_JOINTS
+from lerobot_policy_ocn.envs.dial.task import DEFAULT_DIGITS, parse_pin, pin_code, task_description
 
 FPS = round(1.0 / CONTROL_DT)
 

@@ -1,7 +1,7 @@
 """Scripted Dial expert: a joint-space PD controller to IK joint targets, for a whole ``DialBatch``.
 
 For the digit an env must press next, the joint target lies between the key's hover pose (fingertip
-`HOVER_HEIGHT` above the press point) and its press pose (`envs.dial.poses.dial_poses()`, IK solved
+`HOVER_HEIGHT` above the press point) and its press pose (`lerobot_policy_ocn.envs.dial.poses.dial_poses()`, IK solved
 once per process), set by the fingertip's horizontal L1 distance d to the key's press point: the
 hover pose while d >= 2 `PRESS_BLEND`, the press pose once d <= `PRESS_BLEND`, linearly in between.
 So the hand comes down over the key, not on its edge, and a new digit starts from wherever the last
@@ -10,7 +10,7 @@ press left the hand.
 Control (computed torque at rest): ``tau = M(q) OMEGA^2 e + g(q)`` on the arm, ``tau = FINGER_KP e + g(q)``
 on the fingers (held closed), where ``e`` is the joint error, ``M`` the joint-space inertia and ``g`` the
 gravity torque, both at the current pose (`RestDynamics`); the control sent is ``tau / gear`` clipped
-to [-1, 1]. The scene's joint damping (`envs.dial.scene.ARM_DAMPING`, about 2 OMEGA times each arm
+to [-1, 1]. The scene's joint damping (`lerobot_policy_ocn.envs.dial.scene.ARM_DAMPING`, about 2 OMEGA times each arm
 joint's inertia) brings the arm to rest, so every arm joint closes on its target like a spring of
 OMEGA = 12 rad/s, near critically damped, OMEGA x 0.04 s = 0.48 per env step.
 
@@ -48,9 +48,9 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
-from envs.dial.batch import DialBatch
-from envs.dial.poses import dial_poses
-from envs.dial.scene import GEARS, N_ARM_JOINTS, N_JOINTS
+from lerobot_policy_ocn.envs.dial.batch import DialBatch
+from lerobot_policy_ocn.envs.dial.poses import dial_poses
+from lerobot_policy_ocn.envs.dial.scene import GEARS, N_ARM_JOINTS, N_JOINTS
 
 OMEGA = 12.0
 PRESS_BLEND = 0.04

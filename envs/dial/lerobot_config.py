@@ -10,11 +10,11 @@ from dataclasses import dataclass, field
 from lerobot.configs import PolicyFeature
 from lerobot.envs.configs import EnvConfig
 
-from envs import DIAL_LEROBOT_ENV_ID
-from envs.dial.batch import OBS_DIM
-from envs.dial.env import FPS
-from envs.dial.scene import N_JOINTS
-from envs.lerobot_env import StateEnvConfig, state_action_features
+from lerobot_policy_ocn.envs import DIAL_LEROBOT_ENV_ID
+from lerobot_policy_ocn.envs.dial.batch import OBS_DIM
+from lerobot_policy_ocn.envs.dial.env import FPS
+from lerobot_policy_ocn.envs.dial.scene import N_JOINTS
+from lerobot_policy_ocn.envs.lerobot_env import StateEnvConfig, state_action_features
 
 
 @EnvConfig.register_subclass("dial")

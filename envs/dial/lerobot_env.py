@@ -1,4 +1,4 @@
-"""DialEnv as `lerobot-eval` drives it (see envs.lerobot_env): policy actions are float rows of the
+"""DialEnv as `lerobot-eval` drives it (see lerobot_policy_ocn.envs.lerobot_env): policy actions are float rows of the
 9 motor controls."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from envs.dial.env import DialEnv
-from envs.dial.scene import N_JOINTS
-from envs.dial.task import DEFAULT_DIGITS, default_max_steps
-from envs.lerobot_env import lerobot_env
+from lerobot_policy_ocn.envs.dial.env import DialEnv
+from lerobot_policy_ocn.envs.dial.scene import N_JOINTS
+from lerobot_policy_ocn.envs.dial.task import DEFAULT_DIGITS, default_max_steps
+from lerobot_policy_ocn.envs.lerobot_env import lerobot_env
 
 
 def motor_controls(action: Any) -> np.ndarray:

@@ -19,7 +19,9 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from envs.dial.scene import FINGERTIP_SITE, N_ARM_JOINTS, N_JOINTS, PAD_CENTER, dial_model, key_positions
+from lerobot_policy_ocn.envs.dial.scene import (
+    FINGERTIP_SITE, N_ARM_JOINTS, N_JOINTS, PAD_CENTER, dial_model, key_positions,
+)
 
 HOVER_HEIGHT = 0.1
 HOME_TIP = PAD_CENTER + np.array([0.0, 0.0, 0.25])

@@ -13,7 +13,7 @@ import os
 import mujoco
 import numpy as np
 
-from envs.dial.scene import CAMERA
+from lerobot_policy_ocn.envs.dial.scene import CAMERA
 
 HEIGHT, WIDTH = 240, 320
 

@@ -46,7 +46,7 @@ GEARS = (50.0, 100.0, 100.0, 50.0, 50.0, 50.0, 10.0, 10.0, 10.0)
 # Viscous damping (N m s / rad) on the arm joints, as heavy as a geared motor's: the bare model has
 # almost none (0.01). About 2 x 12 rad/s x each joint's inertia at the home pose (4.4, 4.5, 4.1, 2.0,
 # 2.0, 2.0 kg m^2), so the expert's spring of 12 rad/s stops near critically damped with no velocity
-# feedback: the observation holds no velocities (`envs.dial.expert`).
+# feedback: the observation holds no velocities (`lerobot_policy_ocn.envs.dial.expert`).
 ARM_DAMPING = (100.0, 100.0, 100.0, 50.0, 50.0, 50.0)
 FINGERTIP_OFFSET = (0.0, 0.0, -0.2)
 FINGERTIP_SITE = "fingertip"

@@ -5,7 +5,7 @@ from typing import ClassVar
 
 from lerobot.configs import PreTrainedConfig
 
-from policies.sequence import SequenceConfig, check_choice
+from lerobot_policy_ocn.sequence import SequenceConfig, check_choice
 
 LATENT_TYPES = ("concrete", "gaussian")
 

@@ -16,7 +16,7 @@ The model (Kipf et al. 2019; see `CompILEConfig` for where each hyperparameter c
   of step p - 1): concrete (Gumbel-softmax over `latent_dim` categories, argmax outside training)
   or Gaussian (reparameterised, its mean outside training).
 - An MLP decodes z_i and the observation o_t into the action distribution of step t (the shared
-  heads of `policies.ocn.heads`: categorical for Craft, diagonal Gaussian for continuous actions).
+  heads of `lerobot_policy_ocn.ocn.heads`: categorical for Craft, diagonal Gaussian for continuous actions).
 - Loss per episode: sum over steps and segments of -log p(a_t | o_t, z_i) weighted by the soft
   probability that step t lies in segment i, + kl_z_weight * sum_i KL(q(z_i) || prior) (uniform
   categorical or standard normal) + kl_b_weight * sum over the inner boundaries of
@@ -40,9 +40,9 @@ from torch.nn import functional as F
 
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
-from policies.ocn.encoders import make_encoder
-from policies.ocn.heads import make_action_head
-from policies.sequence import SequencePolicy, batch_mean, frame_mask
+from lerobot_policy_ocn.ocn.encoders import make_encoder
+from lerobot_policy_ocn.ocn.heads import make_action_head
+from lerobot_policy_ocn.sequence import SequencePolicy, batch_mean, frame_mask
 
 from .configuration_compile import CompILEConfig
 

@@ -10,8 +10,8 @@ from typing import Any, ClassVar
 
 from lerobot.configs import PreTrainedConfig
 
-from policies.schedules import PhaseScheduleConfig
-from policies.sequence import AUTO, SequenceConfig, check_choice
+from lerobot_policy_ocn.schedules import PhaseScheduleConfig
+from lerobot_policy_ocn.sequence import AUTO, SequenceConfig, check_choice
 
 EXECUTIONS = ("soft", "hard")
 HIERARCHIES = ("ocn", "moe", "hil")
@@ -36,7 +36,7 @@ class Recipe:
     the same option again, so the options are left free to end mid-subtask, which fails them when they
     run alone (finetuning); once they have split, the cost removes those terminations. From the first
     step, it keeps them from splitting (the reason it waits for the final phase).
-    `taught` trains the options on a split found without labels first (Dial; see `policies.ocn.taught`),
+    `taught` trains the options on a split found without labels first (Dial; see `lerobot_policy_ocn.ocn.taught`),
     its terminations weighted `taught_termination_weight`; the final phase then trains the paper's
     loss at `final_lr_scale` times the rate.
     """
@@ -168,7 +168,7 @@ class OCNConfig(SequenceConfig):
         return RECIPE_TABLE[self.recipe]
 
     def get_scheduler_preset(self) -> PhaseScheduleConfig:
-        """A constant lr that is also the policy's training clock (`policies.schedules`): the policy sets
+        """A constant lr that is also the policy's training clock (`lerobot_policy_ocn.schedules`): the policy sets
         its recipe's final phase on it, once the recipe is known."""
         return PhaseScheduleConfig()
 

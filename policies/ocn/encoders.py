@@ -16,18 +16,20 @@ import math
 import torch
 from torch import Tensor, nn
 
-from envs.craft.observation import FULL_VIEW_DIM, OMPN_DIM, full_view_features, ompn_active_entries, ompn_features
-from envs.dial import OBS_DIM as DIAL_STATE_DIM
-from envs.dial import PRESS_L1
-from envs.dial.poses import dial_poses
-from envs.dial.scene import N_JOINTS
+from lerobot_policy_ocn.envs.craft.observation import (
+    FULL_VIEW_DIM, OMPN_DIM, full_view_features, ompn_active_entries, ompn_features,
+)
+from lerobot_policy_ocn.envs.dial import OBS_DIM as DIAL_STATE_DIM
+from lerobot_policy_ocn.envs.dial import PRESS_L1
+from lerobot_policy_ocn.envs.dial.poses import dial_poses
+from lerobot_policy_ocn.envs.dial.scene import N_JOINTS
 
-from policies.ocn.cell import SparseRows
-from policies.sequence import CRAFT_ENCODERS, SequenceConfig
+from lerobot_policy_ocn.ocn.cell import SparseRows
+from lerobot_policy_ocn.sequence import CRAFT_ENCODERS, SequenceConfig
 
 
 class CraftEncoder(nn.Module):
-    """Compact Craft state [..., 81] -> OMPN features [..., 1075] via `envs.craft.observation`;
+    """Compact Craft state [..., 81] -> OMPN features [..., 1075] via `lerobot_policy_ocn.envs.craft.observation`;
     `full_view`: the exact egocentric view [..., 4750] instead."""
 
     def __init__(self, full_view: bool = False) -> None:

@@ -11,7 +11,7 @@ import math
 import torch
 from torch import Tensor
 
-from policies.sequence import SequenceConfig
+from lerobot_policy_ocn.sequence import SequenceConfig
 
 _LOG_2PI = math.log(2.0 * math.pi)
 

@@ -1,7 +1,7 @@
 """OCN as a LeRobot policy: batch plumbing, the NLL loss (eq. 18), stateful inference and parsing.
 
 Batch plumbing shared with the other whole-episode policies (windows, masks, task table) is
-`policies.sequence`'s.
+`lerobot_policy_ocn.sequence`'s.
 """
 
 import logging
@@ -15,9 +15,9 @@ from torch import Tensor
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-from policies.distributed import global_mean, global_sum
-from policies.schedules import clock_of
-from policies.sequence import SequencePolicy, frame_mask, window_nll
+from lerobot_policy_ocn.distributed import global_mean, global_sum
+from lerobot_policy_ocn.schedules import clock_of
+from lerobot_policy_ocn.sequence import SequencePolicy, frame_mask, window_nll
 
 from .configuration_ocn import OCNConfig
 from .encoders import make_encoder
@@ -106,7 +106,7 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
 
     def in_final_phase(self) -> bool:
         """Whether this training step is in the recipe's final phase (`Recipe.final_fraction`), read from
-        the run's training clock (`policies.schedules`), on which it first sets the recipe's phases."""
+        the run's training clock (`lerobot_policy_ocn.schedules`), on which it first sets the recipe's phases."""
         terms = self.config.recipe_terms
         if not self.training or not terms.final_fraction:
             return False
@@ -191,7 +191,7 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
 
     def _remember_episodes(self, dataset_meta: Any) -> None:
         """The episodes in memory, and under a taught recipe each training frame's option label, from
-        the switching affine split of the training episodes (`policies.ocn.taught`); -1 elsewhere."""
+        the switching affine split of the training episodes (`lerobot_policy_ocn.ocn.taught`); -1 elsewhere."""
         super()._remember_episodes(dataset_meta)
         if not self.config.recipe_terms.taught:
             return
@@ -226,7 +226,7 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         under its labelled option, the controller's cross-entropy at each labelled switch, and the
         running option's termination as a binary cross-entropy at every later frame (target 1 where the
         label changes), weighted by `termination_weight`. Each term is a mean over its frames, those of
-        the global batch in a distributed run (`policies.distributed.global_mean`). `batch`
+        the global batch in a distributed run (`lerobot_policy_ocn.distributed.global_mean`). `batch`
         holds whole episodes from their first frame, as `parse` takes them; `option` [B, T] is each
         frame's option index, -1 on padding. The stats include the mean termination at the switches and
         at the other frames, which tell terminations that fire where they should from a mean that only

@@ -4,7 +4,7 @@ LeRobot's default pipelines (rename -> batch -> device -> normalise; unnormalise
 needs: no tokenizer step, so the raw task strings reach `forward` and `select_action` in
 `batch["task"]`, where the policy maps them to its per-task initial controller states. The episodes
 a policy holds in memory for training are normalised once, with the same statistics and modes, when
-it reads them (`policies.sequence.SequencePolicy`).
+it reads them (`lerobot_policy_ocn.sequence.SequencePolicy`).
 """
 
 from typing import Any
@@ -17,7 +17,7 @@ from lerobot.processor import (
 )
 from lerobot.processor.factory import make_default_policy_processor_steps, make_policy_processor_pipelines
 
-from policies.sequence import SequenceConfig
+from lerobot_policy_ocn.sequence import SequenceConfig
 
 
 def make_ocn_pre_post_processors(

@@ -5,7 +5,7 @@ from typing import ClassVar
 
 from lerobot.configs import PreTrainedConfig
 
-from policies.sequence import SequenceConfig
+from lerobot_policy_ocn.sequence import SequenceConfig
 
 
 @PreTrainedConfig.register_subclass("ompn")

@@ -33,7 +33,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 from torch.nn.utils.rnn import PackedSequence, pad_packed_sequence
 
-from policies.ocn.cell import stacked_uniform
+from lerobot_policy_ocn.ocn.cell import stacked_uniform
 
 
 class Context(NamedTuple):

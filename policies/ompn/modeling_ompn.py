@@ -1,8 +1,8 @@
 """OMPN as a LeRobot policy: the masked NLL over whole-episode windows, stateful inference, and the
 boundary read-out of its expansion distribution.
 
-Batch plumbing (windows, masks, task table) is `policies.sequence`'s, shared with OCN; the
-observation encoder and the action head are OCN's (`policies.ocn.encoders`, `policies.ocn.heads`),
+Batch plumbing (windows, masks, task table) is `lerobot_policy_ocn.sequence`'s, shared with OCN; the
+observation encoder and the action head are OCN's (`lerobot_policy_ocn.ocn.encoders`, `lerobot_policy_ocn.ocn.heads`),
 the head with a single component.
 """
 
@@ -16,9 +16,9 @@ from torch.nn.utils.rnn import PackedSequence, pack_padded_sequence
 
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
-from policies.ocn.encoders import make_encoder
-from policies.ocn.heads import make_action_head
-from policies.sequence import SequencePolicy, frame_mask, window_nll
+from lerobot_policy_ocn.ocn.encoders import make_encoder
+from lerobot_policy_ocn.ocn.heads import make_action_head
+from lerobot_policy_ocn.sequence import SequencePolicy, frame_mask, window_nll
 
 from .configuration_ompn import OMPNConfig
 from .memory import MemoryOutput, OrderedMemory

@@ -14,8 +14,8 @@ import shlex
 import sys
 from types import ModuleType
 
-from tools.bench import dial, env, ppo, quickstart, skills, stacked, train
-from tools.bench.common import new_result, write
+from lerobot_policy_ocn.tools.bench import dial, env, ppo, quickstart, skills, stacked, train
+from lerobot_policy_ocn.tools.bench.common import new_result, write
 
 BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
     "train": (train, "OCN training with lerobot-train in 1, 2, ... processes: frames/s and parse quality"),
@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> None:
     """Run the benchmark the command line names and write its result with the date, the machine and this
-    command line (`tools.bench.common.new_result`), as JSON and as its Markdown report."""
+    command line (`lerobot_policy_ocn.tools.bench.common.new_result`), as JSON and as its Markdown report."""
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
     args.command = shlex.join(["ocn-bench", *argv])

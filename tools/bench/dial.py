@@ -8,7 +8,7 @@ import argparse
 import time
 from typing import Any
 
-from tools.bench.common import add_common_arguments, best_rate, header
+from lerobot_policy_ocn.tools.bench.common import add_common_arguments, best_rate, header
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,7 +23,7 @@ def physics_rates(n_steps: int) -> dict[str, float]:
     import mujoco
     import numpy as np
 
-    from envs.dial import FRAME_SKIP, DialEnv, DialVectorEnv
+    from lerobot_policy_ocn.envs.dial import FRAME_SKIP, DialEnv, DialVectorEnv
 
     controls = np.random.default_rng(0).uniform(-0.3, 0.3, size=(n_steps, 9))
     env = DialEnv(task="12", max_steps=10**9)
@@ -70,7 +70,7 @@ def expert_success(pins: int, noise_levels: tuple[float, ...]) -> dict[str, Any]
     """Success of the Dial expert on `pins` random two-digit PINs from 1, 2, 4, 8, all run as one batch."""
     import numpy as np
 
-    from envs.dial import DialBatch, DialExpert, sample_pin
+    from lerobot_policy_ocn.envs.dial import DialBatch, DialExpert, sample_pin
 
     rng = np.random.default_rng(2024)
     tasks = [sample_pin(rng, 2, (1, 2, 4, 8)) for _ in range(pins)]
@@ -99,7 +99,7 @@ def expert_success(pins: int, noise_levels: tuple[float, ...]) -> dict[str, Any]
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """The measurements; `ocn-bench` adds the provenance and writes the report (`markdown`)."""
-    from envs.dial.expert import NOISE_LEVELS, REFERENCE_NOISE_LEVELS
+    from lerobot_policy_ocn.envs.dial.expert import NOISE_LEVELS, REFERENCE_NOISE_LEVELS
 
     return {
         "env": physics_rates(args.steps),

@@ -11,8 +11,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from tools import console_script
-from tools.bench.common import add_common_arguments, best_rate, header, run_timed, typed
+from lerobot_policy_ocn.tools import console_script
+from lerobot_policy_ocn.tools.bench.common import add_common_arguments, best_rate, header, run_timed, typed
 
 S1_TASKS = "AC,CD,DA"
 
@@ -28,7 +28,7 @@ def env_rates(n_steps: int) -> dict[str, float]:
     """Env steps per second: one `CraftEnv` under random actions, and 64 envs batched both ways."""
     import numpy as np
 
-    from envs.craft import CraftBatch, CraftEnv, CraftVectorEnv
+    from lerobot_policy_ocn.envs.craft import CraftBatch, CraftEnv, CraftVectorEnv
 
     rng = np.random.default_rng(0)
     env = CraftEnv(task="ADC")
@@ -69,7 +69,8 @@ def record_rate(episodes_per_task: int, mcap: bool) -> dict[str, Any]:
 
 def import_seconds(repeats: int = 3) -> float:
     """Seconds a fresh interpreter takes to import `record_demos` (LeRobot and torch with it); best of `repeats`."""
-    return min(run_timed([sys.executable, "-c", "import ocn_data.record_demos"])[0] for _ in range(repeats))
+    command = [sys.executable, "-c", "import lerobot_policy_ocn.ocn_data.record_demos"]
+    return min(run_timed(command)[0] for _ in range(repeats))
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:

@@ -16,12 +16,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from envs.craft.observation import OMPN_DIM
+from lerobot_policy_ocn.envs.craft.observation import OMPN_DIM
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
-from policies.ocn import OCNConfig, OCNPolicy
-from policies.ocn.cell import CellOutput, StackedCell, split_heads
-from policies.schedules import PhaseScheduleConfig
+from lerobot_policy_ocn.ocn import OCNConfig, OCNPolicy
+from lerobot_policy_ocn.ocn.cell import CellOutput, StackedCell, split_heads
+from lerobot_policy_ocn.schedules import PhaseScheduleConfig
 
 BENCH_TASKS = ["task 0", "task 1", "task 2"]
 # A run this long never reaches its final phase: the benchmarks time the recipe's main loss.
@@ -59,7 +59,7 @@ class LoopedCell(nn.Module):
 
 
 def on_clock(policy: OCNPolicy) -> OCNPolicy:
-    """The policy with a training clock of its own (`policies.schedules`), which a recipe with a final
+    """The policy with a training clock of its own (`lerobot_policy_ocn.schedules`), which a recipe with a final
     phase reads in training; it never reaches that phase (`CLOCK_STEPS`)."""
     PhaseScheduleConfig().build(torch.optim.SGD(policy.parameters(), lr=0.0), CLOCK_STEPS)
     return policy

@@ -1,4 +1,4 @@
-"""`ocn-bench ppo`: how far PPO finetuning (`ocn-finetune`, `tools.ppo`) scales with the envs it steps
+"""`ocn-bench ppo`: how far PPO finetuning (`ocn-finetune`, `tools.rl.ppo`) scales with the envs it steps
 together in one process: env frames per second at 64, 256 and 1024 envs on Craft's S1 and S2
 finetuning tasks, with one iteration's time split into the policy's `select_action` calls, the batch
 simulator's steps, the rest of collecting (processors, bookkeeping) and the PPO update.
@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from tools.bench.common import add_common_arguments, header, int_list
+from lerobot_policy_ocn.tools.bench.common import add_common_arguments, header, int_list
 
 TASK_SETS = {"s1": "ADC,CAD,DCA", "s2": "BADC,ACBD,CABD"}
 
@@ -65,17 +65,17 @@ class Stopwatch:
 
 
 def finetuning_start(checkpoint: Path | None, task_spec: str, seed: int = 0) -> tuple[Any, Any, list[str]]:
-    """The policy PPO trains and how it acts (`tools.ppo.Acting`) for the new tasks `task_spec`: the
+    """The policy PPO trains and how it acts (`tools.rl.ppo.Acting`) for the new tasks `task_spec`: the
     checkpoint's options under a fresh controller, or a random 3-option OCN; and the policy's task strings."""
     import dataclasses
 
     import torch
 
-    from policies.ocn import OCNPolicy
-    from tools.episode_parsing import load_policy
-    from tools.ocn_finetune import merge_option_pools, primitive_action_pool
-    from tools.ppo import Acting
-    from tools.worlds import craft, policy_world
+    from lerobot_policy_ocn.ocn import OCNPolicy
+    from lerobot_policy_ocn.tools.eval.parsing import load_policy
+    from lerobot_policy_ocn.tools.cli.ocn_finetune import merge_option_pools, primitive_action_pool
+    from lerobot_policy_ocn.tools.rl.ppo import Acting
+    from lerobot_policy_ocn.tools.worlds import craft, policy_world
 
     torch.manual_seed(seed)
     if checkpoint is None:
@@ -98,7 +98,7 @@ def iteration_times(checkpoint: Path | None, task_spec: str, n_envs: int, iterat
     per env frame, from the best iteration of `iterations` after a warm-up."""
     import numpy as np
 
-    from tools.ppo import PPOConfig, PPOTrainer, collect, env_tasks
+    from lerobot_policy_ocn.tools.rl.ppo import PPOConfig, PPOTrainer, collect, env_tasks
 
     policy, acting, tasks = finetuning_start(checkpoint, task_spec)
     envs = acting.world.new_batch(n_envs, "sparse", None)

@@ -9,8 +9,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from tools import console_script
-from tools.bench.common import add_common_arguments, header, run_timed
+from lerobot_policy_ocn.tools import console_script
+from lerobot_policy_ocn.tools.bench.common import add_common_arguments, header, run_timed
 
 WALL_GOAL_S = 240.0
 NMI_GOAL = 0.9

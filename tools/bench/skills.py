@@ -19,8 +19,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tools import console_script
-from tools.bench.common import add_common_arguments, header, run_timed, typed
+from lerobot_policy_ocn.tools import console_script
+from lerobot_policy_ocn.tools.bench.common import add_common_arguments, header, run_timed, typed
 
 # The OMPN release (Ordered-Memory-RL/ompn_craft) trains Craft for 500 steps to F1 0.98; that run took
 # 15 minutes of wall time when measured on this project's development machine. The reference time to skills.

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from tools.bench.common import add_common_arguments, header, int_list
+from lerobot_policy_ocn.tools.bench.common import add_common_arguments, header, int_list
 
 GOAL = 1.5
 HIDDEN_SIZE = 128  # the S1 policy's width
@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """The measurements; `ocn-bench` adds the provenance and writes the report (`markdown`)."""
     from tqdm import tqdm
 
-    from tools.bench.models import compare_stacked_vs_loop
+    from lerobot_policy_ocn.tools.bench.models import compare_stacked_vs_loop
 
     settings = [(n_options, batch, threads) for n_options in args.options for threads in args.threads
                 for batch in args.batch_sizes]
@@ -60,7 +60,7 @@ def markdown(r: dict[str, Any]) -> str:
         header("Stacked option cells against a per-option loop", r)
         + f"One forward + backward of a whole OCN under the Craft recipe (N options and the controller, width "
         f"{r['hidden_size']}) over a batch of episodes of {r['window']} steps, on the CPU, with the cells stacked "
-        "(`policies.ocn.cell.StackedCell`: one batched matmul per layer for all options) and with the same weights "
+        "(`ocn.cell.StackedCell`: one batched matmul per layer for all options) and with the same weights "
         "evaluated one option at a time in a Python loop (`tools.bench.models.LoopedCell`). The two alternate, "
         f"{r['rounds']} rounds, and the fastest run of each counts.\n\n"
         f"Goal: stacked at least {r['goal']:g}x the loop (issue 71; the earlier 3x is retired): the controller, "

@@ -23,12 +23,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tools import console_script
-from tools.bench.common import add_common_arguments, header, int_list, run_timed, typed
+from lerobot_policy_ocn.tools import console_script
+from lerobot_policy_ocn.tools.bench.common import add_common_arguments, header, int_list, run_timed, typed
 
 REPO_ID = "local/s1"
 S1_TASKS = "AC,CD,DA"
-# The small all-reduces of one training step of the Craft recipe (policies.distributed): the usage
+# The small all-reduces of one training step of the Craft recipe (lerobot_policy_ocn.distributed): the usage
 # balance's share (2) and the episode means of the NLL and the expected NLL (1 each) in the forward,
 # the share's gradient in the backward. DDP's gradient buckets come on top.
 SMALL_ALLREDUCES_PER_STEP = 5
@@ -193,8 +193,8 @@ def update_alone(root: Path, batch_sizes: list[int], device: str, threads: int, 
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
     from lerobot.policies.factory import make_policy
     from lerobot.utils.constants import ACTION, OBS_STATE
-    from policies.ocn import OCNConfig
-    from tools.bench.models import on_clock, torch_threads, update_seconds
+    from lerobot_policy_ocn.ocn import OCNConfig
+    from lerobot_policy_ocn.tools.bench.models import on_clock, torch_threads, update_seconds
 
     meta = LeRobotDatasetMetadata(REPO_ID, root=root)
     rows = []
@@ -273,7 +273,7 @@ def markdown(r: dict[str, Any]) -> str:
             "narrower matmuls: the update alone does not halve, and that ratio is the ceiling of N processes on "
             f"N free cores. The gradients are {first['num_params']:,} floats ({megabytes:.1f} MB), all-reduced "
             f"by DDP at every step; {SMALL_ALLREDUCES_PER_STEP} all-reduces of single numbers carry the global "
-            "batch's statistics (the usage balance and the episode means, `policies.distributed`). Each process "
+            "batch's statistics (the usage balance and the episode means, `distributed`). Each process "
             f"also has {r['workers_per_process']} data worker(s) and holds the whole dataset in memory; with "
             f"{r['machine']['cores']} cores, N processes and their workers share them.\n"
         )
@@ -304,7 +304,7 @@ def _gpu_plan(r: dict[str, Any]) -> str:
         "\nOn N GPUs (a plan; this file measured what its header says): `accelerate launch --multi_gpu "
         "--num_processes N lerobot-train --policy.type=ocn --policy.device=cuda --batch_size=B/N ...` (or the "
         "torchrun line with `--policy.device=cuda`). Accelerate gives each process its GPU and DDP runs over "
-        "NCCL; each process copies the episodes to its GPU once (`policies.episode_memory`). Each step all-reduces "
+        "NCCL; each process copies the episodes to its GPU once (`episode_memory`). Each step all-reduces "
         f"the {megabytes:.1f} MB of gradients: a ring all-reduce moves 2(N - 1)/N of it through each GPU, "
         f"{ring:.1f} MB among 8, so about {ring / 200e3 * 1e6:.0f} us at an NVLink-class 200 GB/s and "
         f"{ring / 20e3 * 1e3:.2f} ms at a PCIe-class 20 GB/s (nominal bandwidths, not measured here), against "

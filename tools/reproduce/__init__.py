@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tools.reproduce import combine, dial, finetune, imitation
+from lerobot_policy_ocn.tools.reproduce import combine, dial, finetune, imitation
 
 
 def build_parser() -> argparse.ArgumentParser:

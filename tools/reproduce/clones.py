@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tools.reproduce.runs import Evaluation, Recording, Training, train_command
+from lerobot_policy_ocn.tools.reproduce.runs import Evaluation, Recording, Training, train_command
 
 # What a clone's row keeps of `ocn-eval`'s JSON, beside the option table and its reading.
 EVAL_KEYS = ("f1_tol0", "f1_tol1", "align_acc", "nmi", "mean_success_rate", "success_rate")
@@ -83,7 +83,7 @@ def scored(workdir: Path, demos: Demos, data: Recording, trained: Training, roll
     """A clone's row in a study's results: its commands, training wall seconds and `ocn-eval`'s scores on
     its recording's validation split (scored unless done), with the option x subtask table read
     (`option_table_summary`: each subtask's best option, the diagonal, the off-diagonal)."""
-    from tools.parsing_metrics import option_table_summary
+    from lerobot_policy_ocn.tools.eval.metrics import option_table_summary
 
     job = Evaluation(workdir, f"{trained.folder}/eval", trained.checkpoint, data.root, demos.repo_id, rollouts).run()
     scores = job.scores()

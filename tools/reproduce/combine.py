@@ -17,8 +17,8 @@ from types import ModuleType
 from pathlib import Path
 from typing import Any
 
-from tools.reproduce import dial, finetune, imitation
-from tools.reproduce.report import provenance
+from lerobot_policy_ocn.tools.reproduce import dial, finetune, imitation
+from lerobot_policy_ocn.tools.reproduce.report import provenance
 
 # The study modules; each names the studies it makes (`STUDIES`), the row lists of their results with
 # the fields that name a row (`ROWS`), the settings that may differ between files (`VARYING`), and

@@ -45,12 +45,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tools.bench.common import RESULTS
-from tools.reproduce import curves, finetune
-from tools.reproduce.clones import Demos, Size, clone, record, scored, size_of
-from tools.reproduce.finetune import CLONED, Setting, add_ppo_arguments, budget_table, finetune_run, summarise
-from tools.reproduce.report import (check, checks_table, mean_std, origin_words, provenance, rates_cell, seconds_cell,
-                                    write_results)
+from lerobot_policy_ocn.tools.bench.common import RESULTS
+from lerobot_policy_ocn.tools.reproduce import curves, finetune
+from lerobot_policy_ocn.tools.reproduce.clones import Demos, Size, clone, record, scored, size_of
+from lerobot_policy_ocn.tools.reproduce.finetune import (
+    CLONED, Setting, add_ppo_arguments, budget_table, finetune_run, summarise,
+)
+from lerobot_policy_ocn.tools.reproduce.report import (
+    check, checks_table, mean_std, origin_words, provenance, rates_cell, seconds_cell, write_results,
+)
 
 SIZE = Size(episodes_per_task=500, steps=5000, batch_size=32)
 ROLLOUTS = 100
@@ -69,7 +72,7 @@ VARYING = finetune.VARYING
 
 def demos() -> Demos:
     """The 2-digit recording: every PIN over (1, 2, 4, 8) with no digit twice."""
-    from envs.dial.task import DEFAULT_DIGITS, pin_code
+    from lerobot_policy_ocn.envs.dial.task import DEFAULT_DIGITS, pin_code
 
     pins = ",".join(pin_code((a, b)) for a in DEFAULT_DIGITS for b in DEFAULT_DIGITS if a != b)
     return Demos("dial2", ("--env", "dial", "--tasks", pins))
@@ -77,7 +80,7 @@ def demos() -> Demos:
 
 def split_report(data: Path) -> dict[str, Any] | None:
     """The switching affine fit's report on the recording `data` (its cost, wall time and scores against
-    the digits, read for the report only), shown above the checks. `policies.ocn.taught` will give it;
+    the digits, read for the report only), shown above the checks. `lerobot_policy_ocn.ocn.taught` will give it;
     until then the results hold none."""
     return None
 

@@ -43,12 +43,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tools.bench.common import RESULTS
-from tools.reproduce import curves
-from tools.reproduce.clones import Demos, Model, Size, add_size_arguments, clone, record, seed_list, size_of
-from tools.reproduce.imitation import S1, SIZE
-from tools.reproduce.report import check, checks_table, mean_std, origin_words, provenance, write_results
-from tools.reproduce.runs import Finetuning
+from lerobot_policy_ocn.tools.bench.common import RESULTS
+from lerobot_policy_ocn.tools.reproduce import curves
+from lerobot_policy_ocn.tools.reproduce.clones import (
+    Demos, Model, Size, add_size_arguments, clone, record, seed_list, size_of,
+)
+from lerobot_policy_ocn.tools.reproduce.imitation import S1, SIZE
+from lerobot_policy_ocn.tools.reproduce.report import (
+    check, checks_table, mean_std, origin_words, provenance, write_results,
+)
+from lerobot_policy_ocn.tools.reproduce.runs import Finetuning
 
 REWARDS = ("sparse", "dense")
 # The methods by their key on the command line: the clone each finetunes (None: flat PPO, no clone).

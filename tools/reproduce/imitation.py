@@ -31,12 +31,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tools.bench.common import RESULTS
-from tools.reproduce.clones import (Demos, Model, Size, add_size_arguments, clone, record, scored, seed_list,
-                                    size_of)
-from tools.reproduce.report import (check, checks_table, mean_std, origin_words, provenance, rates_cell, seconds_cell,
-                                    write_results)
-from tools.reproduce.runs import Recording
+from lerobot_policy_ocn.tools.bench.common import RESULTS
+from lerobot_policy_ocn.tools.reproduce.clones import (
+    Demos, Model, Size, add_size_arguments, clone, record, scored, seed_list, size_of,
+)
+from lerobot_policy_ocn.tools.reproduce.report import (
+    check, checks_table, mean_std, origin_words, provenance, rates_cell, seconds_cell, write_results,
+)
+from lerobot_policy_ocn.tools.reproduce.runs import Recording
 
 STUDY = "imitation_s1"
 S1 = Demos("craft_s1", ("--tasks", "AC,CD,DA"))

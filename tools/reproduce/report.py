@@ -11,7 +11,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from tools.bench.common import machine
+from lerobot_policy_ocn.tools.bench.common import machine
 
 
 def provenance(argv: Sequence[str], settings: dict[str, Any]) -> dict[str, Any]:

@@ -46,7 +46,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from tools import console_script
+from lerobot_policy_ocn.tools import console_script
 
 WORKERS = 1
 SAVE_EVERY = 1000
@@ -200,7 +200,7 @@ class Finetuning(Job):
         return (self.path / self.output / "finetune.json").exists()
 
     def resumed(self) -> list[str] | None:
-        from tools.ocn_finetune import STATE_FILE
+        from lerobot_policy_ocn.tools.cli.ocn_finetune import STATE_FILE
 
         return [*self.command, "--resume"] if (self.path / self.output / STATE_FILE).exists() else None
 

@@ -1,5 +1,5 @@
-"""Dial as a world of the batched rollouts (`tools.rollouts`: free-run success per PIN, and each
-option alone, and PPO's episodes in `tools.ppo`), the counterpart of `tools.craft_rollouts`. Every
+"""Dial as a world of the batched rollouts (`lerobot_policy_ocn.tools.rl.rollouts`: free-run success per PIN, and each
+option alone, and PPO's episodes in `tools.rl.ppo`), the counterpart of `tools.rl.craft_rollouts`. Every
 episode runs in one `DialBatch` from the env's own reset (the home pose, fingertip 0.25 m
 above the pad centre, plus the reset's joint noise; env seeds seed, seed+1, ...) with the env's
 step limit (150 steps per digit). The policy's postprocessed actions are the 9 motor controls,
@@ -12,10 +12,10 @@ one-digit PIN: an option succeeds when that key is pressed before its terminatio
 
 import numpy as np
 
-from envs.dial.batch import DialBatch
-from envs.dial.lerobot_env import motor_controls
-from envs.dial.task import parse_pin, task_description
-from tools import rollouts
+from lerobot_policy_ocn.envs.dial.batch import DialBatch
+from lerobot_policy_ocn.envs.dial.lerobot_env import motor_controls
+from lerobot_policy_ocn.envs.dial.task import parse_pin, task_description
+from lerobot_policy_ocn.tools.rl import rollouts
 
 
 def _new_batch(num_envs: int, reward: str, max_steps: int | None) -> DialBatch:

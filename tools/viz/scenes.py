@@ -6,10 +6,10 @@ segmentation on the right). The lanes, p^c, e_t and summaries are the same for e
 live in `tools/ocn_view.py`. Entity paths:
 
     Craft
-    scene                Image      the grid, drawn from the recorded state by envs.craft.render
+    scene                Image      the grid, drawn from the recorded state by lerobot_policy_ocn.envs.craft.render
     action               Scalars    the action code, as points (0 down, 1 up, 2 left, 3 right, 4 use)
 
-    Dial (no OpenGL: the scene is points, placed from the recorded state and envs.dial.scene)
+    Dial (no OpenGL: the scene is points, placed from the recorded state and lerobot_policy_ocn.envs.dial.scene)
     scene/keys           Points3D   each key's press point, labelled with its digit (static)
     scene/fingertip      Points3D   the fingertip, coloured as the true digit being dialled
     joints               Scalars    the 9 joint angles (rad), one series per joint
@@ -25,14 +25,14 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING
-from envs.craft.render import TILE, render_batch
-from envs.craft.world import ACTION_NAMES, BOUNDARY, GRID_SIZE, INTERIOR_SIZE
-from envs.dial.scene import JOINTS, KEY_HALF_SIZE, N_JOINTS, key_positions
-from tools.segmentation_plot import subtask_colours
+from lerobot_policy_ocn.envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING
+from lerobot_policy_ocn.envs.craft.render import TILE, render_batch
+from lerobot_policy_ocn.envs.craft.world import ACTION_NAMES, BOUNDARY, GRID_SIZE, INTERIOR_SIZE
+from lerobot_policy_ocn.envs.dial.scene import JOINTS, KEY_HALF_SIZE, N_JOINTS, key_positions
+from lerobot_policy_ocn.tools.viz.segmentation_plot import subtask_colours
 
 if TYPE_CHECKING:
-    from tools.ocn_view import Episode
+    from lerobot_policy_ocn.tools.cli.ocn_view import Episode
 
 
 class Scene(Protocol):

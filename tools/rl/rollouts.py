@@ -18,12 +18,12 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import torch
 
-from envs.batching import EpisodeBatch
+from lerobot_policy_ocn.envs.batching import EpisodeBatch
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_STATE
-from policies.ocn import OCNPolicy
-from tools.episode_parsing import Processor
-from tools.rollout_mcap import RolloutMcapWriter, RolloutTrace
+from lerobot_policy_ocn.ocn import OCNPolicy
+from lerobot_policy_ocn.tools.eval.parsing import Processor
+from lerobot_policy_ocn.tools.viz.rollout_mcap import RolloutMcapWriter, RolloutTrace
 
 
 @runtime_checkable
@@ -45,7 +45,7 @@ class OptionPolicy(Protocol):
 
 @dataclass(frozen=True)
 class RolloutWorld:
-    """What a world contributes to the rollouts (and to PPO's, `tools.ppo`).
+    """What a world contributes to the rollouts (and to PPO's, `lerobot_policy_ocn.tools.rl.ppo`).
 
     `new_batch(num_envs, reward, max_steps)` makes the world's batch simulator (`max_steps` None:
     the env's own limits), whose `reset(seeds=..., tasks=...)` takes task strings; `env_action`

@@ -16,10 +16,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tools.parsing_metrics import segment_starts
+from lerobot_policy_ocn.tools.eval.metrics import segment_starts
 
 if TYPE_CHECKING:  # the parse module loads torch and LeRobot; drawing needs neither
-    from tools.episode_parsing import EpisodeParse
+    from lerobot_policy_ocn.tools.eval.parsing import EpisodeParse
 
 # Subtask colours by subtask id (matplotlib's tab10: Craft's 8 subtasks, Dial's 10 digits), option
 # colours by option index (Dark2): two different palettes, since option k is not subtask k.

@@ -5,7 +5,7 @@ same option becomes one LeRobot subtask annotation, in the native `language_pers
 (role "assistant", style "subtask", the segment's name, its start time), with an empty
 `language_events` list per frame. Segments are named "option k", or with `--name-by subtask` by the
 ground-truth subtask that the option overlaps most over the whole dataset. Craft and Dial datasets
-alike: the world comes from the dataset (`tools.worlds`), which names its subtasks. The input dataset
+alike: the world comes from the dataset (`lerobot_policy_ocn.tools.worlds`), which names its subtasks. The input dataset
 is never modified: the annotated dataset is a new copy with its own card and `meta/ocn_annotation.json`.
 """
 
@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from tools.parsing_metrics import segment_starts
-from tools.worlds import World, world_of
+from lerobot_policy_ocn.tools.eval.metrics import segment_starts
+from lerobot_policy_ocn.tools.worlds import World, world_of
 
 NAME_BY = ("option", "subtask")
 LABELS = ("subtask.index", "subtask.id")
@@ -51,8 +51,8 @@ def check_paths(root: Path, out_root: Path, repo_id: str) -> None:
     """Refuse before any parsing: a repo id that is not ORG/NAME, no dataset at root, an existing
     out-root, an out-root inside root or where nothing can be written, or a dataset without the
     ground-truth columns that episodes are read with."""
-    from ocn_data.episodes_table import read_info
-    from ocn_data.preflight import check_can_create, check_repo_id
+    from lerobot_policy_ocn.ocn_data.episodes_table import read_info
+    from lerobot_policy_ocn.ocn_data.preflight import check_can_create, check_repo_id
 
     check_repo_id(repo_id)
     info = read_info(root)
@@ -105,8 +105,8 @@ def parse_dataset(
     policy_path: Path, root: Path, world: World, name_by: str, batch_size: int, device: str
 ) -> tuple[dict, dict]:
     """The policy's segments of every episode of the dataset, by episode index, and the option names."""
-    from ocn_data.episodes_table import load_episodes, split_episodes
-    from tools.episode_parsing import load_ocn, parse_episodes
+    from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+    from lerobot_policy_ocn.tools.eval.parsing import load_ocn, parse_episodes
 
     policy, preprocessor, _ = load_ocn(policy_path, device)
     episodes = load_episodes(root, split_episodes(root, "all"))
@@ -127,7 +127,7 @@ def rewrite_data_file(path: Path, segments: dict[int, list[tuple[int, str]]], fp
     from lerobot.datasets.io_utils import write_table_one_row_group_per_episode
     from lerobot.datasets.language import LANGUAGE_EVENTS, LANGUAGE_PERSISTENT
 
-    from ocn_data.language_rows import empty_events_column, persistent_column
+    from lerobot_policy_ocn.ocn_data.language_rows import empty_events_column, persistent_column
 
     table = pq.read_table(path)
     episode = table["episode_index"].to_numpy()
@@ -151,7 +151,7 @@ def write_annotated(root: Path, out_root: Path, segments: dict, annotation: dict
     from lerobot.datasets.io_utils import load_info, write_info
     from lerobot.datasets.language import language_feature_info
 
-    from ocn_data.datacard import ANNOTATION, dataset_card
+    from lerobot_policy_ocn.ocn_data.datacard import ANNOTATION, dataset_card
 
     out_root.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=f".{out_root.name}.", dir=out_root.parent))

@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from tools import console_script
+from lerobot_policy_ocn.tools import console_script
 
 EPISODES_PER_TASK = 2000
 STEPS = 3000

@@ -46,16 +46,18 @@ import rerun as rr
 import rerun.blueprint as rrb
 from tqdm import tqdm
 
-from ocn_data.episodes_table import read_info
-from ocn_data.preflight import check_can_create, check_repo_id
-from tools.parsing_metrics import segment_starts
-from tools.segmentation_plot import SWITCH_COLOUR, EpisodeView, option_colours, plot_segmentation, subtask_colours
-from tools.worlds import World, world_of
+from lerobot_policy_ocn.ocn_data.episodes_table import read_info
+from lerobot_policy_ocn.ocn_data.preflight import check_can_create, check_repo_id
+from lerobot_policy_ocn.tools.eval.metrics import segment_starts
+from lerobot_policy_ocn.tools.viz.segmentation_plot import (
+    SWITCH_COLOUR, EpisodeView, option_colours, plot_segmentation, subtask_colours,
+)
+from lerobot_policy_ocn.tools.worlds import World, world_of
 
 if TYPE_CHECKING:
-    from ocn_data.episodes_table import EpisodeArrays
-    from tools.episode_parsing import EpisodeParse
-    from tools.view_scenes import Scene
+    from lerobot_policy_ocn.ocn_data.episodes_table import EpisodeArrays
+    from lerobot_policy_ocn.tools.eval.parsing import EpisodeParse
+    from lerobot_policy_ocn.tools.viz.scenes import Scene
 
 TIMELINE = "frame"
 TERMINATION_COLOUR = (90, 90, 90)
@@ -133,7 +135,7 @@ def _episode_groups(
 ) -> list[EpisodeArrays]:
     """The split's first `selection` episodes as one group, or each listed episode as its own group
     (load_episodes reads a contiguous range; listed episodes may lie far apart)."""
-    from ocn_data.episodes_table import load_episodes, split_episodes
+    from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
 
     if isinstance(selection, int):
         return [load_episodes(root, split_episodes(root, split), selection)]
@@ -165,7 +167,7 @@ def load_view(args: argparse.Namespace, info: dict[str, Any]) -> list[Episode]:
     groups = _episode_groups(args.root, info, args.split, args.episodes)
     if args.policy is None:
         return [e for group in groups for e in _episodes_of(group, [None] * len(group.tasks))]
-    from tools.episode_parsing import load_ocn, parse_episodes  # torch and LeRobot: only with a policy
+    from lerobot_policy_ocn.tools.eval.parsing import load_ocn, parse_episodes  # torch and LeRobot: only with a policy
 
     policy, preprocessor, _ = load_ocn(args.policy, args.device)
     return [

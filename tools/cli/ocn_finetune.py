@@ -3,7 +3,7 @@
 The RL phase of the paper (section 3.3, appendix A.1): the options of one or more trained `ocn`
 checkpoints are pooled (S1: one checkpoint's options; S2: two checkpoints' options concatenated),
 a new controller with one initial state per new task is put over the pool, and PPO trains it in
-option space (see `tools.ppo`) while every option stays frozen. The result is an ordinary `ocn`
+option space (see `lerobot_policy_ocn.tools.rl.ppo`) while every option stays frozen. The result is an ordinary `ocn`
 checkpoint with `execution="hard"`, so `load_ocn` and `lerobot-eval --policy.path=DIR/pretrained_model`
 run the finetuned hierarchy unchanged. A checkpoint of the MoE or HIL baseline (`hierarchy="moe"` or
 `"hil"`) keeps its hierarchy, so its options keep running for their fixed number of steps.
@@ -16,10 +16,10 @@ S1 over the same frozen options, T = 1 reached 0.59 sparse success on ADC in 200
 seeds against 0.33 and 0.46 at T = 10 (`results/baselines_s1_adc`).
 
 The world PPO acts in is the checkpoints' own, read from the widths of their state and action
-(`tools.worlds.policy_world`: 81 floats and one action index for Craft, 39 floats and 9 motor
+(`lerobot_policy_ocn.tools.worlds.policy_world`: 81 floats and one action index for Craft, 39 floats and 9 motor
 controls for Dial), since a checkpoint has no dataset beside it to ask; the PPO loop, its semi-MDP
 GAE and this command are the same code for both, the world entering only through its batch
-simulator, its task names and how actions reach the env (`tools.ppo.Acting`). States and actions
+simulator, its task names and how actions reach the env (`lerobot_policy_ocn.tools.rl.ppo.Acting`). States and actions
 go through the first checkpoint's pre- and post-processors, as under `lerobot-eval`: on Dial they
 standardise the 39 floats and unstandardise the 9 torques with the dataset's statistics (so pooled
 Dial checkpoints must share them), on Craft they are identities. The finetuned checkpoint is saved
@@ -35,14 +35,14 @@ Dial finetuning dials 3-digit PINs from S = (1, 2, 4, 8); a list of all of them 
 A `compile` checkpoint gets compILE's RL form (the paper's: decoder frozen, a re-initialised encoder
 predicting the latent, trained by the same PPO). With concrete latents, the frozen decoder given the
 one-hot latent k is a one-step option, so the decoder is a pool of `latent_dim` options
-(`policies.ocn.latent_options`); the fresh controller chooses one at every step (`hierarchy="moe"`,
+(`lerobot_policy_ocn.ocn.latent_options`); the fresh controller chooses one at every step (`hierarchy="moe"`,
 temperature 1 unless --temperature says otherwise), exactly as --flat chooses primitive actions.
 The result is an `ocn` checkpoint whose options are that decoder (`decoder_latents` > 0), so
 `lerobot-eval` and the tools run it like any other. Several compile checkpoints (S2) stack their
 decoders into one pool, option d * latent_dim + k being decoder d given latent k. A compILE with
 Gaussian latents has no pool of latents to choose from and is refused.
 
-An `ompn` checkpoint gets OMPN's RL form (`tools.ompn_rl`): OMPN cannot be split into options, so
+An `ompn` checkpoint gets OMPN's RL form (`lerobot_policy_ocn.tools.rl.ompn_rl`): OMPN cannot be split into options, so
 the whole network, with one new task embedding per new task, is finetuned by the same PPO on
 primitive actions, and the result is an `ompn` checkpoint. Only one, in Craft: it pools with nothing.
 
@@ -59,7 +59,7 @@ comparison (figure 6) has no flat baseline, so `--flat` with Dial PINs is refuse
 Writes into --out: curve.csv (one row per PPO iteration: env frames, mean return, success overall
 and per task as `success[ADC]` or `success[124]`, PPO statistics), curve.png, finetune.json
 (settings and summary), pretrained_model/ (config, weights and the first checkpoint's
-pre/post-processors) and training_state.pt, rewritten after every iteration (`tools.ppo.RunSnapshot`):
+pre/post-processors) and training_state.pt, rewritten after every iteration (`tools.rl.ppo.RunSnapshot`):
 `--resume` with the same command goes on from it after an interruption, as if the run had not stopped.
 """
 
@@ -79,15 +79,15 @@ import torch
 
 from lerobot.configs import NormalizationMode
 from lerobot.policies.pretrained import PreTrainedPolicy
-from ocn_data.preflight import check_can_create
-from policies.compile import CompILEPolicy
-from policies.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
-from policies.ompn import OMPNPolicy
-from policies.sequence import SequenceConfig
-from tools.episode_parsing import Processor, load_policy
-from tools.ompn_rl import finetunable_ompn, ompn_for_tasks
-from tools.ppo import Acting, PPOConfig, RunSnapshot, env_tasks, finetune
-from tools.worlds import World, craft, dial, policy_world
+from lerobot_policy_ocn.ocn_data.preflight import check_can_create
+from lerobot_policy_ocn.compile import CompILEPolicy
+from lerobot_policy_ocn.ocn import OCNConfig, OCNPolicy, make_ocn_pre_post_processors
+from lerobot_policy_ocn.ompn import OMPNPolicy
+from lerobot_policy_ocn.sequence import SequenceConfig
+from lerobot_policy_ocn.tools.eval.parsing import Processor, load_policy
+from lerobot_policy_ocn.tools.rl.ompn_rl import finetunable_ompn, ompn_for_tasks
+from lerobot_policy_ocn.tools.rl.ppo import Acting, PPOConfig, RunSnapshot, env_tasks, finetune
+from lerobot_policy_ocn.tools.worlds import World, craft, dial, policy_world
 
 # The checkpoint types --checkpoint takes: options to pool (ocn), a decoder's latents (compile), OMPN's RL form.
 FINETUNED_TYPES = ("ocn", "compile", "ompn")
@@ -236,8 +236,8 @@ def primitive_action_pool(tasks: Sequence[str], hidden_size: int, temperature: f
     sampling is exact); under `hierarchy="moe"` every option lasts one step, so the fresh controller
     (drawn from torch's current RNG) is a recurrent policy over primitive actions.
     """
-    from envs.craft.observation import OBS_DIM
-    from envs.craft.world import N_ACTIONS
+    from lerobot_policy_ocn.envs.craft.observation import OBS_DIM
+    from lerobot_policy_ocn.envs.craft.world import N_ACTIONS
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.utils.constants import ACTION, OBS_STATE
 

@@ -3,7 +3,7 @@
 OMPN's levels talk through continuous memory, bottom-up and top-down, so it cannot be split into
 options under a new controller; the paper keeps its high level and finetunes it. `ocn-finetune
 --checkpoint OMPN_CKPT` checks the checkpoint (`finetunable_ompn`: one checkpoint, Craft only), gives
-it the new tasks (`ompn_for_tasks`) and `tools.ppo` trains it through `MemoryActor`: every env
+it the new tasks (`ompn_for_tasks`) and `lerobot_policy_ocn.tools.rl.ppo` trains it through `MemoryActor`: every env
 decides at every step, its choice is the primitive action it sampled, and every weight is trained
 with the critic. The result stays an `ompn` checkpoint.
 """
@@ -18,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from lerobot.policies.pretrained import PreTrainedPolicy
-from policies.ompn import OMPNPolicy
+from lerobot_policy_ocn.ompn import OMPNPolicy
 
 TASK_EMBEDDING = "memory.task_embedding.weight"
 
@@ -64,7 +64,7 @@ def finetunable_ompn(
 
 
 class MemoryActor:
-    """PPO's actor for an OMPN (see `tools.ppo.Actor`): every row decides at every step, and the
+    """PPO's actor for an OMPN (see `lerobot_policy_ocn.tools.rl.ppo.Actor`): every row decides at every step, and the
     choice is the primitive action `select_action` sampled from the actor's categorical logits."""
 
     def __init__(self, policy: OMPNPolicy) -> None:

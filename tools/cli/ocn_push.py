@@ -23,7 +23,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from ocn_data.preflight import check_repo_id
+from lerobot_policy_ocn.ocn_data.preflight import check_repo_id
 
 DATASET_TAGS = ("LeRobot", "robotics")
 POLICY_TAGS = ("lerobot", "robotics", "ocn", "option-controller-network", "hierarchical-imitation", "skill-induction")
@@ -71,7 +71,7 @@ def dataset_files(root: Path) -> dict[str, Path]:
     LeRobot's `images/` scratch folder, hidden files and half-written `*.tmp` files."""
     from lerobot.datasets.dataset_metadata import CODEBASE_VERSION
 
-    from ocn_data.episodes_table import read_info
+    from lerobot_policy_ocn.ocn_data.episodes_table import read_info
 
     version = read_info(root).get("codebase_version")
     if version != CODEBASE_VERSION:
@@ -141,7 +141,7 @@ def _train_settings(path: Path) -> dict[str, Any] | None:
 
 def _craft_mode(tasks: list[str]) -> str:
     """The Craft mode that holds every task (the env's `--env.mode`): paper unless a task needs the full book."""
-    from envs.craft.world import parse_task
+    from lerobot_policy_ocn.envs.craft.world import parse_task
 
     try:
         for task in tasks:
@@ -156,9 +156,9 @@ def model_card(path: Path, repo_id: str, result: dict[str, Any] | None, train_co
     `--policy.path` will load what is published."""
     from huggingface_hub import ModelCardData
 
-    from ocn_data.datacard import render_card
-    from policies.sequence import CRAFT_ENCODERS
-    from tools.episode_parsing import load_ocn
+    from lerobot_policy_ocn.ocn_data.datacard import render_card
+    from lerobot_policy_ocn.sequence import CRAFT_ENCODERS
+    from lerobot_policy_ocn.tools.eval.parsing import load_ocn
 
     policy, _, _ = load_ocn(path)
     config = policy.config
@@ -274,7 +274,7 @@ def plan(args: argparse.Namespace) -> tuple[dict[str, Path], dict[str, str], str
     """Files to upload, generated texts and the Hub repo type for one `ocn-push` command."""
     check_repo_id(args.repo_id)
     if args.what == "dataset":
-        from ocn_data.datacard import dataset_card
+        from lerobot_policy_ocn.ocn_data.datacard import dataset_card
 
         files = dataset_files(args.root)
         return files, {"README.md": dataset_card(args.root, args.repo_id)}, "dataset"

@@ -7,7 +7,7 @@ under `execution="hard"`, through the checkpoint's pre- and post-processors, as 
 `ocn-eval` run it), every env of one batch simulator stepped together, and read the policy's
 `last_step.decided` to know where the controller chose. The world (Craft or Dial) enters only
 through `Acting`: its batch simulator's `reset` and `step`, and its `RolloutWorld.env_action`
-(`tools.rollouts`), which turns the postprocessed actions into env actions; the states stored for
+(`lerobot_policy_ocn.tools.rl.rollouts`), which turns the postprocessed actions into env actions; the states stored for
 the update are the preprocessed ones the policy saw (on Dial, standardised by the dataset's
 statistics), so the replay sees exactly what the rollout saw.
 
@@ -36,7 +36,7 @@ part of the task, as in evaluation.
 
 What PPO needs of a policy is its `Actor` (`as_actor`): where rows decided and what they chose,
 the replay of whole episodes' decisions, and what it trains. An OCN's is `OptionController`, all of
-the above. An OMPN's is `tools.ompn_rl.MemoryActor`, OMPN's RL form (paper appendix A.3): OMPN
+the above. An OMPN's is `lerobot_policy_ocn.tools.rl.ompn_rl.MemoryActor`, OMPN's RL form (paper appendix A.3): OMPN
 cannot be split into options, so every row decides at every step, its choice is the primitive
 action, and the whole network is trained (one transition per env step: ordinary GAE).
 
@@ -58,13 +58,13 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from envs.batching import EpisodeBatch
+from lerobot_policy_ocn.envs.batching import EpisodeBatch
 from lerobot.utils.constants import OBS_STATE
-from policies.ocn import OCNPolicy
-from policies.ompn import OMPNPolicy
-from tools.episode_parsing import Processor
-from tools.ompn_rl import MemoryActor
-from tools.rollouts import RolloutWorld, policy_inputs, step_envs
+from lerobot_policy_ocn.ocn import OCNPolicy
+from lerobot_policy_ocn.ompn import OMPNPolicy
+from lerobot_policy_ocn.tools.eval.parsing import Processor
+from lerobot_policy_ocn.tools.rl.ompn_rl import MemoryActor
+from lerobot_policy_ocn.tools.rl.rollouts import RolloutWorld, policy_inputs, step_envs
 
 
 @dataclass

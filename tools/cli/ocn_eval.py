@@ -4,13 +4,13 @@ On the split's episodes (default "val") it runs the policy over each whole episo
 parse against the ground-truth subtasks with the shared parsing metrics: F1 at tolerance 0 and 1
 and task alignment from the predicted boundaries, NMI from per-step labels (OCN: the chosen option
 argmax p^c), and the mean NLL per frame of the demonstrated actions (`action_nll`: OCN, OMPN).
-In the dataset's world (Craft or Dial, read from the dataset; `tools.worlds`) it measures the
+In the dataset's world (Craft or Dial, read from the dataset; `lerobot_policy_ocn.tools.worlds`) it measures the
 whole policy's free-run success per task (Dial: per PIN) and, for a policy made of
 options, each frozen option alone on each subtask (paper table 1; Dial: each digit), drawn as a
 PNG beside the JSON. With --oracle-tasks it also runs the frozen options on other tasks (the
-finetuning tasks, say) under an oracle controller (`tools.rollouts.oracle_controller_success`):
+finetuning tasks, say) under an oracle controller (`lerobot_policy_ocn.tools.rl.rollouts.oracle_controller_success`):
 the ceiling a finetuned controller over these options can reach. Every model type parses through
-`tools.episode_parsing` (OMPN: the top-k steps of its expected expansion; compILE: its argmax
+`lerobot_policy_ocn.tools.eval.parsing` (OMPN: the top-k steps of its expected expansion; compILE: its argmax
 segment boundaries, labelled by its concrete latents; --boundary-threshold gives OMPN a read-out
 that is not told the number of subtasks); what does not apply to a model (OMPN has
 no labels, OMPN and compILE no options, compILE no per-step NLL) is null in the JSON, with the
@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from ocn_data.durable import write_atomic
-from ocn_data.preflight import check_can_create, check_repo_id
+from lerobot_policy_ocn.ocn_data.durable import write_atomic
+from lerobot_policy_ocn.ocn_data.preflight import check_can_create, check_repo_id
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -96,7 +96,7 @@ def check_outputs(args: argparse.Namespace) -> None:
     """Refuse, before any work, an id that is not ORG/NAME, a result that exists (unless --force:
     results are not overwritten by accident), an output folder that cannot be written, an MCAP log
     that exists."""
-    from ocn_data.mcap_log import check_new_log
+    from lerobot_policy_ocn.ocn_data.mcap_log import check_new_log
 
     check_repo_id(args.repo_id)
     if not args.force:
@@ -114,11 +114,11 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     """Everything `ocn-eval` reports, as the JSON it writes."""
     import torch
 
-    from ocn_data.episodes_table import load_episodes, read_info, split_episodes
-    from tools import rollouts
-    from tools.episode_parsing import (PARSERS, action_nll, load_policy, parse_statistics, parser_of,
+    from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, read_info, split_episodes
+    from lerobot_policy_ocn.tools.rl import rollouts
+    from lerobot_policy_ocn.tools.eval.parsing import (PARSERS, action_nll, load_policy, parse_statistics, parser_of,
                                        score_segmentations)
-    from tools.worlds import world_of
+    from lerobot_policy_ocn.tools.worlds import world_of
 
     check_outputs(args)
     world = world_of(args.root)
@@ -182,7 +182,7 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         nll = action_nll(parses)
     log = None
     if args.mcap is not None:
-        from tools.rollout_mcap import RolloutMcapWriter
+        from lerobot_policy_ocn.tools.viz.rollout_mcap import RolloutMcapWriter
 
         state_names = info["features"]["observation.state"]["names"]
         log = RolloutMcapWriter(args.mcap, info["fps"], list(state_names), str(args.policy))

@@ -22,10 +22,10 @@ import torch
 
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
-from ocn_data.episodes_table import EpisodeArrays
-from policies.ocn import OCNPolicy
-from policies.ompn.modeling_ompn import expansion_boundaries, threshold_boundaries
-from tools.parsing_metrics import boundaries_from_labels, parsing_scores, segment_starts
+from lerobot_policy_ocn.ocn_data.episodes_table import EpisodeArrays
+from lerobot_policy_ocn.ocn import OCNPolicy
+from lerobot_policy_ocn.ompn.modeling_ompn import expansion_boundaries, threshold_boundaries
+from lerobot_policy_ocn.tools.eval.metrics import boundaries_from_labels, parsing_scores, segment_starts
 
 Processor = Callable[[Any], Any]
 
@@ -114,15 +114,18 @@ def load_policy(
     path: Path, device: str = "cpu", types: Sequence[str] | None = None
 ) -> tuple[PreTrainedPolicy, Processor, Processor]:
     """A checkpoint (a `pretrained_model` folder) of any registered policy type, or of one of `types`
-    (what the calling tool takes), in eval mode, with its pre/post-processors. The project's entry
-    package is imported first, as LeRobot's CLIs do, so that every policy type it ships (`ocn`,
-    `ompn`, `compile`) is registered in any process. A checkpoint of another type, or with a damaged
-    file, is a one-line ValueError naming it, before any weight is read."""
+    (what the calling tool takes), in eval mode, with its pre/post-processors. The project's types are
+    registered first, as LeRobot's CLIs do, so that every policy type it ships (`ocn`, `ompn`,
+    `compile`) loads in any process. A checkpoint of another type, or with a damaged file, is a
+    one-line ValueError naming it, before any weight is read."""
     import draccus
-    import lerobot_policy_ocn  # noqa: F401
     from lerobot.configs import PreTrainedConfig
+
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
+    from lerobot_policy_ocn import register
+
+    register()
     path = Path(path)
     policy_type = checkpoint_type(path)
     if types is not None and policy_type not in types:
@@ -294,7 +297,7 @@ def validation_nll(checkpoint: Path, root: Path, max_episodes: int | None = None
     """`action_nll` of a checkpoint on the validation split of the dataset at `root` (its first
     `max_episodes` episodes): how well it clones held-out demonstrations, read without their subtask
     labels, so that it may choose between runs without looking at the scores it is judged on."""
-    from ocn_data.episodes_table import load_episodes, split_episodes
+    from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
 
     policy, preprocessor, _ = load_policy(checkpoint)
     episodes = load_episodes(root, split_episodes(root, "val"), max_episodes)

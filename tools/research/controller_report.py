@@ -1,6 +1,7 @@
 """What a finetuned controller does over its frozen options, and how far it is from their ceiling.
 
-`python -m tools.controller_report --policy RUN/pretrained_model --tasks BADC,ACBD,CABD --out F.json`
+`python -m lerobot_policy_ocn.tools.research.controller_report --policy RUN/pretrained_model --tasks BADC,ACBD,CABD
+--out F.json`
 runs an OCN checkpoint whose controller `ocn-finetune` trained (any OCN over self-terminating options)
 on its tasks, under hard execution with sampling as PPO trained it, and writes:
 
@@ -27,11 +28,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from policies.ocn import OCNPolicy
-from tools import rollouts
-from tools.episode_parsing import Processor, load_policy
-from tools.rollouts import RolloutWorld, policy_inputs, step_envs
-from tools.worlds import World, policy_world
+from lerobot_policy_ocn.ocn import OCNPolicy
+from lerobot_policy_ocn.tools.rl import rollouts
+from lerobot_policy_ocn.tools.eval.parsing import Processor, load_policy
+from lerobot_policy_ocn.tools.rl.rollouts import RolloutWorld, policy_inputs, step_envs
+from lerobot_policy_ocn.tools.worlds import World, policy_world
 
 
 @torch.no_grad()
@@ -123,7 +124,8 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m tools.controller_report", description=__doc__.splitlines()[0],
+    parser = argparse.ArgumentParser(prog="python -m lerobot_policy_ocn.tools.research.controller_report",
+                                     description=__doc__.splitlines()[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--policy", type=Path, required=True, help="a pretrained_model folder written by ocn-finetune")
     parser.add_argument("--tasks", required=True, help="the tasks to run, as ocn-finetune --tasks writes them")

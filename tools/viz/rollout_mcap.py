@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ocn_data.mcap_log import JsonMcapLog, number_array, step_schema
+from lerobot_policy_ocn.ocn_data.mcap_log import JsonMcapLog, number_array, step_schema
 
 TASK = {"task": {"type": "string"}}
 

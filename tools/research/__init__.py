@@ -1,0 +1,1 @@
+"""Probes for research questions; no command imports them."""
