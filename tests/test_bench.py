@@ -151,8 +151,8 @@ def test_skills_runs_the_plain_commands_from_an_empty_folder(tmp_path):
     from lerobot_policy_ocn.tools.bench import skills
     from lerobot_policy_ocn.tools.bench.common import typed
 
-    args = argparse.Namespace(steps=2, episodes_per_task=2, device="cpu")
-    commands = skills.plain_commands(tmp_path, 3, args)
+    args = argparse.Namespace(episodes_per_task=2, device="cpu")
+    commands = skills.plain_commands(tmp_path, 3, 2, args)
     assert {name: typed(command).replace(f"{tmp_path}/", "") for name, command in commands.items()} == {
         "record_demos": "record_demos --env craft --tasks AC,CD,DA --episodes-per-task 2 --root R --repo-id local/s1",
         "lerobot-train": "lerobot-train --policy.type=ocn --policy.device=cpu --dataset.repo_id=local/s1 "
@@ -166,10 +166,12 @@ def test_skills_runs_the_plain_commands_from_an_empty_folder(tmp_path):
     assert set(timed["wall_s"]) == set(commands) and timed["total_wall_s"] >= sum(timed["wall_s"].values())
     assert timed["against_ompn_release"] == pytest.approx(timed["total_wall_s"] / 900.0)
     assert timed["reached_goal"] == (timed["nmi"] >= 0.95)
+    runs = [{"seed": 3, "steps": 2, **timed}]
     result = {**_provenance("ocn-bench skills --steps 2"), "nmi_goal": 0.95, "ompn_release_wall_s": 900.0,
-              "ompn_release_f1": 0.98, "seeds": [{"seed": 3, **timed}]}
+              "ompn_release_f1": 0.98, "steps": [2], "seeds": runs, "fastest": skills.fastest(runs)}
     report = skills.markdown(result)
-    assert "    record_demos --env craft" in report and f"| 3 | {timed['wall_s']['record_demos']:.0f} |" in report
+    assert "    record_demos --env craft" in report and f"| 2 | 3 | {timed['wall_s']['record_demos']:.0f} |" in report
+    assert ("Time to skills" in report) == timed["reached_goal"] and "2 steps: " in report
 
 
 def test_quickstart_measures_a_command_in_an_empty_folder_against_the_goals(craft_dataset, ocn_checkpoint):
