@@ -32,13 +32,14 @@ def state_action_features(state_dim: int, action_dim: int) -> dict[str, PolicyFe
 
 @dataclass
 class StateEnvConfig(EnvConfig):
-    """Base of our `--env.type` configs: state-only envs registered with gymnasium by `envs`."""
+    """Base of our `--env.type` configs: state-only envs registered with gymnasium by `lerobot_policy_ocn.envs`
+    (the package LeRobot imports when it finds an env's gym id unregistered)."""
 
     features_map: dict[str, str] = field(default_factory=lambda: {ACTION: ACTION, STATE_KEY: OBS_STATE})
 
     @property
     def package_name(self) -> str:
-        return "envs"
+        return "lerobot_policy_ocn.envs"
 
 
 class LeRobotStateEnv(gym.Wrapper):

@@ -37,7 +37,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from lerobot_policy_ocn.ocn_data.durable import PARTIAL_SUFFIX, FolderTransaction, leftovers, previous_path, recover
-from lerobot_policy_ocn.ocn_data.lerobot_writer import INFO_PATH, STATS_PATH, TASKS_PATH, split_ranges
+from lerobot_policy_ocn.ocn_data.dataset_files import INFO_PATH, STATS_PATH, TASKS_PATH, split_ranges
 from lerobot_policy_ocn.ocn_data.provenance import PROVENANCE, load_provenance, write_provenance
 
 # What interrupted writes leave inside a dataset: ours, and the `.parquet.tmp` of writers before them.

@@ -55,15 +55,14 @@ from lerobot.utils.constants import DEFAULT_FEATURES
 from lerobot.utils.feature_utils import _validate_feature_names
 from PIL import Image
 
+from lerobot_policy_ocn.ocn_data.dataset_files import (
+    DATA_PATH, EPISODES_PATH, INFO_PATH, STATS_PATH, TASKS_PATH, VIDEO_PATH, split_ranges,
+)
 from lerobot_policy_ocn.ocn_data.durable import FolderTransaction
 from lerobot_policy_ocn.ocn_data.episodes import EpisodeChunk
 from lerobot_policy_ocn.ocn_data.language_rows import empty_events_column, persistent_column
 from lerobot_policy_ocn.ocn_data.stats import STAT_KEYS, episode_stats, pooled_stats
 
-DATA_PATH = "data/chunk-{chunk:03d}/file-{file:03d}.parquet"
-EPISODES_PATH = "meta/episodes/chunk-{chunk:03d}/file-{file:03d}.parquet"
-VIDEO_PATH = "videos/{key}/chunk-{chunk:03d}/file-{file:03d}.mp4"
-INFO_PATH, STATS_PATH, TASKS_PATH = "meta/info.json", "meta/stats.json", "meta/tasks.parquet"
 BOOKKEEPING = tuple(DEFAULT_FEATURES)
 FAULT_ENV = "OCN_FAULT_AFTER"
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -117,15 +116,6 @@ def held_stop_signals() -> Iterator[None]:
             signal.signal(signum, handler)
         for signum in dict.fromkeys(pending):
             signal.raise_signal(signum)
-
-
-def split_ranges(total: int, val_fraction: float) -> dict[str, str]:
-    """`meta/info.json` splits: the last `val_fraction` of the episodes is the validation split."""
-    n_train = total - int(round(total * val_fraction))
-    splits = {"train": f"0:{n_train}"}
-    if n_train < total:
-        splits["val"] = f"{n_train}:{total}"
-    return splits
 
 
 def read_episode_index(root: Path, columns: list[str]) -> pa.Table:

@@ -17,7 +17,8 @@ from lerobot_policy_ocn.envs.craft.world import parse_task, task_description
 from lerobot_policy_ocn.compile import CompILEPolicy
 from test_ocn_finetune import assert_refused, decisions_match_frames, hard_rollout, save_variant, variant
 from lerobot_policy_ocn.tools.eval.parsing import load_ocn, load_policy
-from lerobot_policy_ocn.tools.cli.ocn_finetune import compile_latent_options, main, merge_option_pools
+from lerobot_policy_ocn.tools.cli.ocn_finetune import main
+from lerobot_policy_ocn.tools.rl.finetuning import compile_latent_options, merge_option_pools
 
 torch.set_num_threads(1)
 

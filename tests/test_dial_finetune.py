@@ -22,7 +22,8 @@ from lerobot_policy_ocn.ocn import OCNConfig, make_ocn_pre_post_processors
 from test_ocn_finetune import assert_refused, decisions_match_frames, lerobot_eval_rollout, save_variant
 from lerobot_policy_ocn.tools.rl.dial_rollouts import DIAL_WORLD
 from lerobot_policy_ocn.tools.eval.parsing import load_ocn, load_policy
-from lerobot_policy_ocn.tools.cli.ocn_finetune import main, merge_option_pools, save_checkpoint
+from lerobot_policy_ocn.tools.cli.ocn_finetune import main
+from lerobot_policy_ocn.tools.rl.finetuning import merge_option_pools, save_checkpoint
 from lerobot_policy_ocn.tools.rl.ppo import Acting, collect
 from conftest import DIAL_REPO_ID
 

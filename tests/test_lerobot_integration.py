@@ -173,7 +173,7 @@ def test_ocn_eval_scores_a_hil_checkpoint(trained, tmp_path):
     weights under HIL's schedule, saved with its processors, parse and roll out through ocn-eval."""
     from lerobot_policy_ocn.tools.eval.parsing import load_ocn
     from lerobot_policy_ocn.tools.cli.ocn_eval import main as ocn_eval
-    from lerobot_policy_ocn.tools.cli.ocn_finetune import save_checkpoint
+    from lerobot_policy_ocn.tools.rl.finetuning import save_checkpoint
 
     root, checkpoint = trained
     source, preprocessor, postprocessor = load_ocn(checkpoint)

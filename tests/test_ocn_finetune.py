@@ -16,7 +16,8 @@ from lerobot_policy_ocn.envs.craft.world import parse_task, task_description
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_STATE
 from lerobot_policy_ocn.tools.eval.parsing import load_ocn, load_policy
-from lerobot_policy_ocn.tools.cli.ocn_finetune import main, merge_option_pools, save_checkpoint
+from lerobot_policy_ocn.tools.cli.ocn_finetune import main
+from lerobot_policy_ocn.tools.rl.finetuning import merge_option_pools, save_checkpoint
 
 torch.set_num_threads(1)
 

@@ -9,7 +9,7 @@ from lerobot_policy_ocn.envs.craft.world import DOWN, EMPTY, LEFT, UP, USE, WOOD
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 from lerobot_policy_ocn.ocn import OCNConfig, OCNPolicy
-from lerobot_policy_ocn.tools.cli.ocn_finetune import primitive_action_pool
+from lerobot_policy_ocn.tools.rl.finetuning import primitive_action_pool
 from lerobot_policy_ocn.tools.rl.craft_rollouts import craft_world
 from lerobot_policy_ocn.tools.rl.ppo import (
     Acting, Decisions, PPOConfig, PPOTrainer, collect, finetune, replay_controller, semi_mdp_gae,

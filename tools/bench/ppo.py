@@ -73,7 +73,7 @@ def finetuning_start(checkpoint: Path | None, task_spec: str, seed: int = 0) -> 
 
     from lerobot_policy_ocn.ocn import OCNPolicy
     from lerobot_policy_ocn.tools.eval.parsing import load_policy
-    from lerobot_policy_ocn.tools.cli.ocn_finetune import merge_option_pools, primitive_action_pool
+    from lerobot_policy_ocn.tools.rl.finetuning import merge_option_pools, primitive_action_pool
     from lerobot_policy_ocn.tools.rl.ppo import Acting
     from lerobot_policy_ocn.tools.worlds import craft, policy_world
 

@@ -6,7 +6,6 @@ is the last step of a segment ("a segment runs up to and including its boundary 
 episode's final step is one: the last subtask completes there.
 """
 
-import itertools
 from collections.abc import Sequence
 from typing import Any
 
@@ -124,21 +123,15 @@ def option_table_summary(table: np.ndarray) -> dict[str, Any]:
     """Read an option x subtask success table [N options, K subtasks] (paper table 1).
 
     Options carry no names, so each subtask is matched to a distinct option by the assignment with
-    the highest total success (exhaustive; N and K are small). `diagonal` is the matched cells,
-    `off_diagonal_max` the best success of a matched option on any other subtask.
+    the highest total success (`scipy.optimize.linear_sum_assignment`: polynomial, where trying every
+    permutation took about 26 s at 10 x 10). `diagonal` is the matched cells, `off_diagonal_max` the
+    best success of a matched option on any other subtask.
     """
+    from scipy.optimize import linear_sum_assignment
+
     table = np.asarray(table, dtype=float)
-    n_options, n_subtasks = table.shape
-    if n_options < n_subtasks:
-        rows = list(range(n_options))
-        best = max(itertools.permutations(range(n_subtasks), n_options), key=lambda cols: table[rows, list(cols)].sum())
-        matched = dict(zip(best, rows, strict=True))
-    else:
-        best = max(
-            itertools.permutations(range(n_options), n_subtasks),
-            key=lambda opts: table[list(opts), range(n_subtasks)].sum(),
-        )
-        matched = dict(enumerate(best))
+    options, subtasks = linear_sum_assignment(table, maximize=True)
+    matched = {int(subtask): int(option) for option, subtask in zip(options, subtasks, strict=True)}
     diagonal = [float(table[option, subtask]) for subtask, option in sorted(matched.items())]
     off = table[list(matched.values())].copy()
     for k, (subtask, _) in enumerate(sorted(matched.items())):

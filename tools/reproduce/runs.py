@@ -200,7 +200,7 @@ class Finetuning(Job):
         return (self.path / self.output / "finetune.json").exists()
 
     def resumed(self) -> list[str] | None:
-        from lerobot_policy_ocn.tools.cli.ocn_finetune import STATE_FILE
+        from lerobot_policy_ocn.tools.rl.finetune_settings import STATE_FILE
 
         return [*self.command, "--resume"] if (self.path / self.output / STATE_FILE).exists() else None
 

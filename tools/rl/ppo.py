@@ -63,30 +63,9 @@ from lerobot.utils.constants import OBS_STATE
 from lerobot_policy_ocn.ocn import OCNPolicy
 from lerobot_policy_ocn.ompn import OMPNPolicy
 from lerobot_policy_ocn.tools.eval.parsing import Processor
+from lerobot_policy_ocn.tools.rl.finetune_settings import PPOConfig
 from lerobot_policy_ocn.tools.rl.ompn_rl import MemoryActor
 from lerobot_policy_ocn.tools.rl.rollouts import RolloutWorld, policy_inputs, step_envs
-
-
-@dataclass
-class PPOConfig:
-    """PPO hyperparameters; defaults from the paper's appendix A.2 (table 3) where it gives them."""
-
-    lr: float = 3e-4
-    epochs: int = 4
-    batch_size: int = 256  # controller decisions per minibatch (whole episodes, so about this many)
-    gamma: float = 0.97
-    gae_lambda: float = 0.95
-    clip: float = 0.2
-    entropy_coef: float = 1e-3
-    value_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    value_hidden: int = 64
-
-    def __post_init__(self) -> None:
-        if self.lr <= 0 or self.epochs < 1 or self.batch_size < 1:
-            raise ValueError("lr must be > 0, epochs and batch_size >= 1.")
-        if not (0 < self.gamma <= 1 and 0 <= self.gae_lambda <= 1 and self.clip > 0):
-            raise ValueError("gamma must be in (0, 1], gae_lambda in [0, 1] and clip > 0.")
 
 
 class ValueHead(nn.Module):
