@@ -1,5 +1,5 @@
 """`ocn-reproduce dial`: the affine split is the plain recipe and writes the headline set, the induced
-split is the paper's loss and writes elsewhere; the checks use results/dial_affine.md's bars."""
+split is the paper's loss and writes elsewhere; the checks use results/archive/dial_affine_2026-12-06's bars."""
 
 from __future__ import annotations
 

@@ -19,12 +19,12 @@ alone, which is what an option sees and what the controller adds. The expert bef
 the motion itself (``- 2 OMEGA M(q) qdot``, with Coriolis forces) from joint velocities that the
 observation does not hold; a memoryless network predicted 0.79 of its control's variance from the
 observation and the digit, and no more with the last step's change of the observation (0.77),
-against 0.98 with the velocities (`results/bench_clonability_velocity_pd.md`). A fifth of the
+against 0.98 with the velocities (`results/archive/bench_clonability_velocity_pd_2026-12-03/`). A fifth of the
 control was noise to every option, and OCN's options did not split by digit on it
-(`results/dial_option_split_pd/`). This expert's control is 0.99 explained by the observation and
-the digit (`results/bench_clonability.md`).
+(`results/archive/dial_option_split_pd/`). This expert's control is 0.99 explained by the observation and
+the digit (`results/archive/bench_clonability_2026-12-03/`).
 
-Why this kind of controller, measured by behaviour cloning (`results/dial_expert/`): the PID expert
+Why this kind of controller, measured by behaviour cloning (`results/archive/dial_expert/`): the PID expert
 of the first Dial sessions, with gains 20-40 times higher (its loop near the limit of stability at
 one control every 0.04 s, so its controls flipped between the limits) that switched from hover to
 press on a hidden event (the fingertip held still over the key), could not be cloned: a single

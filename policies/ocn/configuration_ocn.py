@@ -55,7 +55,8 @@ class Recipe:
 RECIPE_TABLE: dict[str, Recipe] = {
     # results/imitation_s1.md: NMI >= 0.95 and F1@1 >= 0.95 on every seed from the plain command.
     "craft": Recipe(usage_balance=1.0, expected_nll_weight=0.1, final_fraction=1 / 6, settle_termination_cost=0.1),
-    # results/dial.md: options taught the switching affine fit's split, then the paper's loss at 3e-5.
+    # results/archive/dial_affine_2026-12-06: options taught the switching affine fit's split,
+    # then the paper's loss at 3e-5.
     "dial": Recipe(final_fraction=0.2, final_lr_scale=0.03, taught=True, taught_termination_weight=5.0, n_options=4),
     "paper": Recipe(),
 }

@@ -1,14 +1,15 @@
 """The Dial recipe's first phase: option labels found without subtask labels, which the options are taught.
 
-On Dial, gradient descent on the paper's loss rarely splits the digits (results/dial.md, `--split
-induced`), yet one affine map from the state to the action per digit explains most of the expert's
-control. So the recipe fits that simpler model directly and teaches its split to OCN: N affine maps,
-and per episode a path through them that pays `SWITCH_PENALTY` per change, scored by the squared error
-of the standardised actions. The fit alternates the best paths (a Viterbi pass over all episodes at
-once) with a least-squares refit of each map on its frames. That descent stops in local optima, so the
-best of a few random starts is then improved by split-and-merge moves (Ueda et al., 2000): two maps'
-frames are merged, a third map's frames are split at random between it and the freed map, and the
-descent runs again; a move is kept when it lowers the total cost. No subtask label is read.
+On Dial, gradient descent on the paper's loss rarely splits the digits
+(results/archive/dial_induced_2026-12-06, `--split induced`), yet one affine map from the state to the
+action per digit explains most of the expert's control. So the recipe fits that simpler model directly
+and teaches its split to OCN: N affine maps, and per episode a path through them that pays
+`SWITCH_PENALTY` per change, scored by the squared error of the standardised actions. The fit alternates
+the best paths (a Viterbi pass over all episodes at once) with a least-squares refit of each map on its
+frames. That descent stops in local optima, so the best of a few random starts is then improved by
+split-and-merge moves (Ueda et al., 2000): two maps' frames are merged, a third map's frames are split
+at random between it and the freed map, and the descent runs again; a move is kept when it lowers the
+total cost. No subtask label is read.
 
 The fit depends only on the training episodes' states and actions and the settings below, so it is
 cached by their hash (`cached_split`): every clone of a recording shares one fit.
@@ -28,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 RIDGE = 1e-3  # keeps each map's normal equations solvable when its frames span few states
-# The fit's settings (results/dial.md): a change of map costs 30 squared standardised action errors;
+# The fit's settings (results/archive/dial_affine_2026-12-06): a change of map costs 30 squared
+# standardised action errors;
 # the best of 3 random starts, each of runs of 20 frames with a random map, fitted on the first 1,200
 # training episodes (all are labelled), fit seed 0.
 SWITCH_PENALTY = 30.0

@@ -13,7 +13,7 @@ imitation phase's T = 10: the paper gives T only for imitation, where it slows t
 against the options ("fast and slow learning"), and its PPO table has none. A fresh controller at
 T = 10 starts with near-uniform choices that PPO's learning rate moves ten times more slowly; on
 S1 over the same frozen options, T = 1 reached 0.59 sparse success on ADC in 200k frames in two
-seeds against 0.33 and 0.46 at T = 10 (`results/baselines_s1_adc`).
+seeds against 0.33 and 0.46 at T = 10 (`results/archive/baselines_s1_adc`).
 
 The world PPO acts in is the checkpoints' own, read from the widths of their state and action
 (`lerobot_policy_ocn.tools.worlds.policy_world`: 81 floats and one action index for Craft, 39 floats and 9 motor
@@ -102,7 +102,7 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--temperature", type=float, default=None,
                         help="the new controller's softmax temperature T (default 1: the imitation phase's T = 10 "
                              "keeps a fresh controller's choices near uniform at PPO's learning rate, see "
-                             "results/baselines_s1_adc)")
+                             "results/archive/baselines_s1_adc)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads; the per-step matmuls are small, and more threads than free "
                              "cores slow them down many times over")

@@ -26,13 +26,14 @@ is not in its figure, so MoE is the baseline.
 PPO's discount is 0.995 (`ocn-finetune --gamma`, a PPO setting, not the recipe's): a 3-digit PIN
 takes about 90 steps of 40 ms (the expert's median for two digits is 59, results/bench_dial.md), so
 the paper's 0.97 discounts the sparse reward to about 0.06 at the first decision; over the same
-options, results/dial_keys measured 0.34 success at 0.97 and 0.97 at 0.995.
+options, results/archive/dial_keys measured 0.34 success at 0.97 and 0.97 at 0.995.
 
-Per seed on the 2-core VM (from results/dial.json and dial_affine.json): two clones of 20-35 min
+Per seed on the 2-core VM (from results/archive/dial_induced_2026-12-06 and dial_affine_2026-12-06):
+two clones of 20-35 min
 (plus the affine fit, about 6 min, if the policy makes it per run), 8 min of scoring, and four PPO
 runs of 8-18 min (OCN about 1,900 frames/s, MoE 630): about 2 hours, 6 CPU-hours for three seeds.
 
-The checks, with the bars of results/dial_affine.md: OCN's imitation F1@1 >= 0.9, NMI >= 0.8 and
+The checks, with the bars of results/archive/dial_affine_2026-12-06: OCN's imitation F1@1 >= 0.9, NMI >= 0.8 and
 2-digit success >= 0.8 (means over seeds); OCN's sparse 3-digit success >= 0.7 at the budget, and
 MoE's below it.
 """

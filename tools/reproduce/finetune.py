@@ -14,17 +14,17 @@ envs, under each reward (sparse, dense) and each seed (the clone's seed is the P
 
 Defaults, chosen for the 2-core VM:
 - S1: 500,000 env frames, 64 envs. At 300k frames OCN's sparse success was on the 0.9 bar's edge
-  (0.955 / 0.937 / 0.857, results/finetune_s1_dart_300k) and at 1.5M well above it (0.985 / 1.000 /
-  0.984, results/finetune_s1_dart), its curve passing 0.9 near 150k. More frames cost little for
+  (0.955 / 0.937 / 0.857, results/archive/finetune_s1_dart_300k) and at 1.5M well above it (0.985 / 1.000 /
+  0.984, results/archive/finetune_s1_dart), its curve passing 0.9 near 150k. More frames cost little for
   the others, but OMPN's RL form runs at about 130 frames/s: 64 minutes per run at 500k.
 - S2: 3,000,000 env frames, 256 envs: the setting under which OCN's sparse success held 0.8 on
-  every task on three seeds (results/finetune_s2_envs256; 64 envs fell short at 1.5M and 3M).
+  every task on three seeds (results/archive/finetune_s2_envs256; 64 envs fell short at 1.5M and 3M).
 - Seeds 1, 2, 3.
 
 What that costs on the 2-core VM (every command single-threaded, so two invocations side by side,
 joined by `ocn-reproduce combine`, take half the wall time): a clone 20-25 min (6,000 steps at about
-0.21 s of CPU, `runs.WORKERS`), OMPN's about 33; PPO at the frames/s of results/finetune_s1_dart_300k
-(64 envs) and results/finetune_s2_envs256 (256 envs). S1, per seed: four clones (OCN's is
+0.21 s of CPU, `runs.WORKERS`), OMPN's about 33; PPO at the frames/s of results/archive/finetune_s1_dart_300k
+(64 envs) and results/archive/finetune_s2_envs256 (256 envs). S1, per seed: four clones (OCN's is
 imitation-s1's) about 2 h, twelve PPO runs about 3 h, two of them OMPN's (2 h 10 min); about 14
 CPU-hours for three seeds, 8 without OMPN. S2, per seed: eight clones about 3 h, ten PPO runs about
 3 h 10 min; about 18 CPU-hours for three seeds.
@@ -88,7 +88,7 @@ class Setting:
 SETTINGS = {
     "s1": Setting("s1", (S1,), "ADC,CAD,DCA", tuple(CLONED), 500_000, 64, 0.9),
     "s2": Setting("s2", (Demos("craft_s2_ab", ("--tasks", "AB,BA")), Demos("craft_s2_cd", ("--tasks", "CD,DC"))),
-                  "BADC,ACBD,CABD", ("ocn", "moe", "hil", "compile", "flat"), 1_500_000, 256, 0.8, {"n_options": 2}),
+                  "BADC,ACBD,CABD", ("ocn", "moe", "hil", "compile", "flat"), 3_000_000, 256, 0.8, {"n_options": 2}),
 }
 STUDIES = tuple(f"finetune_{name}" for name in SETTINGS)
 
