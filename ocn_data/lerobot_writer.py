@@ -272,7 +272,7 @@ class ColumnarDatasetWriter:
 
         numeric = [k for k, ft in self.features.items() if ft["dtype"] not in ("video", "language", "string")]
         per_episode = {k: episode_stats(columns[k], chunk.lengths) for k in numeric} | video_episode_stats
-        pooled = {k: pooled_stats(columns[k]) for k in numeric} | video_pooled
+        pooled = {k: pooled_stats(per_episode[k]) for k in numeric} | video_pooled
 
         ends = np.cumsum(chunk.lengths) + first_frame
         episodes = {
@@ -347,9 +347,7 @@ class ColumnarDatasetWriter:
             ep = episode_stats(pixels, chunk.lengths * per_frame)
             ep["count"] = chunk.lengths[:, None]
             per_episode[key] = {k: v if k == "count" else v.reshape(n_eps, 3, 1, 1) for k, v in ep.items()}
-            pool = pooled_stats(pixels)
-            pool["count"] = np.array([chunk.num_frames])
-            pooled[key] = {k: v if k == "count" else v.reshape(3, 1, 1) for k, v in pool.items()}
+            pooled[key] = pooled_stats(per_episode[key])
         return columns, per_episode, pooled
 
 

@@ -1,11 +1,13 @@
-"""Per-episode and whole-chunk feature statistics in LeRobot's stats format, vectorised.
+"""Per-episode and whole-chunk feature statistics, by LeRobot's own definitions, vectorised.
 
-LeRobot's own `save_episode()` computes each episode's statistics one episode at a time through a
-histogram-based running estimator, which costs a large part of a second per short episode. Here
-all episodes of a chunk are reduced at once: min/max/mean/std with segment reductions, and exact
-quantiles by stacking the episodes that share a length into one array and calling `np.quantile`
-once per length. The result has the same keys, shapes and dtypes as LeRobot's
-(`min, max, mean, std, count, q01, q10, q50, q90, q99`, vectors of the feature's width).
+LeRobot's `save_episode()` reduces each episode through `RunningQuantileStats`: min/max/mean/std,
+and quantiles read off a 5,000-bin histogram spanning the episode's range, interpolated within the
+bin. A dataset's statistics are `aggregate_stats` of its episodes': min/max/mean/std pooled exactly,
+each quantile the frame-count-weighted mean of the episodes' quantiles. Recording one episode at a
+time that way costs a large part of a second per short episode, so here all episodes of a chunk are
+reduced at once. The histogram never has to be built: an episode of L frames fills at most L bins,
+so sorting the frames' bin numbers gives the cumulative counts the quantile search needs. The
+result has LeRobot's keys, shapes and values (`min, max, mean, std, count, q01, q10, q50, q90, q99`).
 """
 
 from __future__ import annotations
@@ -15,11 +17,36 @@ import numpy as np
 QUANTILES: tuple[float, ...] = (0.01, 0.10, 0.50, 0.90, 0.99)
 QUANTILE_KEYS: tuple[str, ...] = tuple(f"q{int(q * 100):02d}" for q in QUANTILES)
 STAT_KEYS: tuple[str, ...] = ("min", "max", "mean", "std", "count", *QUANTILE_KEYS)
+HISTOGRAM_BINS = 5000  # RunningQuantileStats' default
+RANGE_PADDING = 1e-10  # the histogram spans [min - padding, max + padding], as LeRobot's does
 
 
 def _as_2d(values: np.ndarray) -> np.ndarray:
     """Frames x dims view of a column (a scalar-per-frame column becomes one dim)."""
     return values.reshape(len(values), -1).astype(np.float64, copy=False)
+
+
+def _histogram_quantiles(x: np.ndarray) -> np.ndarray:
+    """LeRobot's histogram quantiles of each episode of equal length: x [episodes, L, dims] ->
+    [quantiles, episodes, dims]."""
+    low = x.min(axis=1, keepdims=True) - RANGE_PADDING
+    width = (x.max(axis=1, keepdims=True) + RANGE_PADDING - low) / HISTOGRAM_BINS
+    bins = np.clip(np.floor((x - low) / width), 0, HISTOGRAM_BINS - 1)
+    # Half-open bins [edge_b, edge_b+1), as np.histogram places a value that the division rounds over.
+    bins -= (bins > 0) & (x < low + bins * width)
+    bins += (bins < HISTOGRAM_BINS - 1) & (x >= low + (bins + 1) * width)
+    bins = np.sort(bins, axis=1)
+    length = x.shape[1]
+    out = np.empty((len(QUANTILES), x.shape[0], x.shape[2]))
+    for i, q in enumerate(QUANTILES):
+        target = q * length
+        # The first bin whose cumulative count reaches the target, the count below it and in it.
+        b = bins[:, int(np.ceil(target)) - 1, :]
+        below = (bins < b[:, None, :]).sum(axis=1)
+        inside = (bins == b[:, None, :]).sum(axis=1)
+        edge = low[:, 0, :] + b * width[:, 0, :]
+        out[i] = np.where(b == 0, low[:, 0, :], edge + (target - below) / inside * width[:, 0, :])
+    return out
 
 
 def episode_stats(values: np.ndarray, lengths: np.ndarray) -> dict[str, np.ndarray]:
@@ -47,23 +74,31 @@ def episode_stats(values: np.ndarray, lengths: np.ndarray) -> dict[str, np.ndarr
     quantiles = np.empty((len(QUANTILES), n_eps, dims))
     for length in np.unique(lengths):
         episodes = np.flatnonzero(lengths == length)
+        if length < 2:  # LeRobot gives an episode of one frame its mean as every quantile
+            quantiles[:, episodes, :] = mean[episodes]
+            continue
         rows = starts[episodes, None] + np.arange(length)[None, :]
-        quantiles[:, episodes, :] = np.quantile(x[rows], QUANTILES, axis=1)
+        quantiles[:, episodes, :] = _histogram_quantiles(x[rows])
     for key, q in zip(QUANTILE_KEYS, quantiles, strict=True):
         out[key] = q
     return out
 
 
-def pooled_stats(values: np.ndarray) -> dict[str, np.ndarray]:
-    """Statistics of one feature over all frames of a chunk (exact quantiles)."""
-    x = _as_2d(values)
+def pooled_stats(per_episode: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The statistics of a set of episodes, from `episode_stats`' output, as `aggregate_stats` pools
+    them: exact min/max/mean/std, count-weighted mean quantiles."""
+    counts = per_episode["count"].reshape(len(per_episode["count"]), -1)[:, :1].astype(np.float64)
+    total = counts.sum()
+    weights = counts.reshape((-1,) + (1,) * (per_episode["mean"].ndim - 1)) / total
+    mean = (per_episode["mean"] * weights).sum(axis=0)
+    variance = ((per_episode["std"] ** 2 + (per_episode["mean"] - mean) ** 2) * weights).sum(axis=0)
     out = {
-        "min": x.min(axis=0),
-        "max": x.max(axis=0),
-        "mean": x.mean(axis=0),
-        "std": x.std(axis=0),
-        "count": np.array([len(x)]),
+        "min": per_episode["min"].min(axis=0),
+        "max": per_episode["max"].max(axis=0),
+        "mean": mean,
+        "std": np.sqrt(variance),
+        "count": np.array([int(total)]),
     }
-    for key, q in zip(QUANTILE_KEYS, np.quantile(x, QUANTILES, axis=0), strict=True):
-        out[key] = q
+    for key in QUANTILE_KEYS:
+        out[key] = (per_episode[key] * weights).sum(axis=0)
     return out

@@ -10,10 +10,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
+import pandas as pd
 import pytest
 import torch
 from huggingface_hub import DatasetCard
+from lerobot.datasets.compute_stats import aggregate_stats, compute_episode_stats
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.collate import lerobot_collate_fn
 
@@ -68,19 +69,27 @@ def test_dataset_reads_back_in_lerobot(recorded):
         np.testing.assert_array_equal(np.flatnonzero(np.diff(sub_index[rows])), np.flatnonzero(sub_end[rows])[:-1])
 
 
-def test_stats_match_the_data(recorded):
+def test_stats_are_lerobots_own(recorded):
+    """Episode and dataset statistics equal what LeRobot's save_episode computes (its histogram
+    quantiles per episode) and what aggregate_stats makes of them (count-weighted quantiles)."""
     root, _ = recorded
     ds = LeRobotDataset("local/test_s1", root=root)
-    state = np.asarray(ds.hf_dataset.with_format("numpy")["observation.state"], dtype=np.float64)
-    stats = ds.meta.stats["observation.state"]
-    np.testing.assert_allclose(stats["mean"], state.mean(0), atol=1e-9)
-    np.testing.assert_allclose(stats["std"], state.std(0), atol=1e-9)
-    np.testing.assert_array_equal(stats["max"], state.max(0))
-    episodes = pq.read_table(root / "meta/episodes/chunk-000/file-000.parquet").to_pylist()
-    length = episodes[0]["length"]
-    np.testing.assert_allclose(episodes[0]["stats/observation.state/q50"], np.quantile(state[:length], 0.5, axis=0))
-    np.testing.assert_allclose(episodes[1]["stats/observation.state/min"],
-                               state[length : length + episodes[1]["length"]].min(0))
+    table = ds.hf_dataset.with_format("numpy")
+    episode_index = np.asarray(table["episode_index"])
+    keys = ("observation.state", "action", "subtask.index")
+    features = {k: ds.meta.features[k] for k in keys}
+    theirs = [compute_episode_stats({k: np.asarray(table[k])[episode_index == e] for k in keys}, features)
+              for e in range(ds.num_episodes)]
+    episodes = pd.concat([pd.read_parquet(p) for p in sorted((root / "meta/episodes").glob("*/*.parquet"))])
+    for e in (0, 1, ds.num_episodes - 1):
+        for key in keys:
+            for stat, value in theirs[e][key].items():
+                ours = np.asarray(episodes.iloc[e][f"stats/{key}/{stat}"])
+                np.testing.assert_allclose(ours, value, rtol=1e-5, atol=1e-6, err_msg=f"episode {e} {key} {stat}")
+    pooled = aggregate_stats(theirs)
+    for key in keys:
+        for stat, value in pooled[key].items():
+            np.testing.assert_allclose(ds.meta.stats[key][stat], value, rtol=1e-5, atol=1e-6, err_msg=f"{key} {stat}")
 
 
 def test_windowed_access_pads_past_episode_end(recorded):
