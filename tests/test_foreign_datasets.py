@@ -39,26 +39,27 @@ IMAGE = (24, 32, 3)  # height, width, channels: not square, so that shrinking to
 TASKS = ("reach then push", "push then reach")
 
 
-def make_dataset(root: Path, repo_id: str, *, states: dict[str, int], video: bool, discrete: bool,
-                 labelled: bool) -> Path:
-    """EPISODES episodes of LENGTH frames written by LeRobot's own writer: random float states, a video
-    image whose brightness encodes the phase, an action that follows the phase, the tasks in turn."""
+def make_dataset(root: Path, repo_id: str, *, states: dict[str, int], image: str | None, discrete: bool,
+                 labelled: bool, episodes: int = EPISODES) -> Path:
+    """`episodes` episodes of LENGTH frames written by LeRobot's own writer: random float states, an image
+    (`image`: stored as "video" or as "image", or None) whose brightness encodes the phase and whose
+    texture is random, an action that follows the phase, the tasks in turn."""
     rng = np.random.default_rng(0)
     features = {key: {"dtype": "float32", "shape": (width,), "names": None} for key, width in states.items()}
-    if video:
-        features["observation.image"] = {"dtype": "video", "shape": IMAGE, "names": ["height", "width", "channels"]}
+    if image:
+        features["observation.image"] = {"dtype": image, "shape": IMAGE, "names": ["height", "width", "channels"]}
     features["action"] = {"dtype": "int64", "shape": (1,), "names": None} if discrete else \
         {"dtype": "float32", "shape": (2,), "names": None}
     if labelled:
         features |= {key: {"dtype": "int64", "shape": (1,), "names": None} for key in ("subtask.index", "subtask.id")}
-    dataset = LeRobotDataset.create(repo_id, 10, features, root=root, use_videos=video)
-    for episode in range(EPISODES):
+    dataset = LeRobotDataset.create(repo_id, 10, features, root=root, use_videos=image == "video")
+    for episode in range(episodes):
         switch = int(rng.integers(3, LENGTH - 3))
         for t in range(LENGTH):
             phase = int(t >= switch)
             frame = {key: rng.normal(size=width).astype(np.float32) + phase for key, width in states.items()}
-            if video:
-                frame["observation.image"] = np.full(IMAGE, 40 + 160 * phase, dtype=np.uint8)
+            if image:
+                frame["observation.image"] = (40 + 160 * phase + rng.integers(0, 50, IMAGE)).astype(np.uint8)
             frame["action"] = np.array([phase + int(rng.random() < 0.2)], dtype=np.int64) if discrete else \
                 np.array([phase, 1 - phase], dtype=np.float32) + rng.normal(scale=0.1, size=2).astype(np.float32)
             if labelled:
@@ -72,20 +73,20 @@ def make_dataset(root: Path, repo_id: str, *, states: dict[str, int], video: boo
 @pytest.fixture(scope="module")
 def state_only(tmp_path_factory) -> Path:
     return make_dataset(tmp_path_factory.mktemp("state_only") / "ds", "local/state_only",
-                        states={"observation.state": 5}, video=False, discrete=True, labelled=True)
+                        states={"observation.state": 5}, image=None, discrete=True, labelled=True)
 
 
 @pytest.fixture(scope="module")
 def two_states_and_video(tmp_path_factory) -> Path:
     return make_dataset(tmp_path_factory.mktemp("video") / "ds", "local/two_states_and_video",
-                        states={"observation.state": 4, "observation.environment_state": 3}, video=True,
+                        states={"observation.state": 4, "observation.environment_state": 3}, image="video",
                         discrete=False, labelled=True)
 
 
 @pytest.fixture(scope="module")
 def unlabelled(tmp_path_factory) -> Path:
     return make_dataset(tmp_path_factory.mktemp("unlabelled") / "ds", "local/unlabelled",
-                        states={"observation.state": 6}, video=False, discrete=True, labelled=False)
+                        states={"observation.state": 6}, image=None, discrete=True, labelled=False)
 
 
 def lerobot_train(root: Path, out: Path, *flags: str) -> Path:
@@ -169,11 +170,14 @@ def build(root: Path, **config) -> torch.nn.Module:
     return make_policy(OCNConfig(device="cpu", hidden_size=16, mlp_hidden_size=16, **config), ds_meta=meta)
 
 
-def test_images_are_decoded_once_as_lerobot_decodes_them(two_states_and_video):
-    policy = build(two_states_and_video, recipe="paper")
+@pytest.mark.parametrize("stored", ["video", "image"])
+def test_images_are_decoded_once_as_lerobot_decodes_them(stored, two_states_and_video, tmp_path):
+    root = two_states_and_video if stored == "video" else make_dataset(
+        tmp_path / "ds", "local/image", states={}, image="image", discrete=True, labelled=False, episodes=3)
+    policy = build(root, recipe="paper")
     frames = policy._episodes.frames["observation.image"]
-    assert frames.dtype == torch.uint8 and tuple(frames.shape) == (EPISODES * LENGTH, 3, 40, 40)
-    dataset = LeRobotDataset("local/x", root=two_states_and_video)
+    dataset = LeRobotDataset("local/x", root=root)
+    assert frames.dtype == torch.uint8 and tuple(frames.shape) == (len(dataset), 3, 40, 40)
     for index in (0, 7, LENGTH + 4, len(dataset) - 1):
         item = dataset[index]
         start = int(policy._episodes.start[int(item["episode_index"])])
