@@ -3,10 +3,14 @@
 Registration is skipped for ids already present, so importing (or reloading) twice is silent.
 `OCN/CraftLeRobot-v0` and `OCN/DialLeRobot-v0` are Craft and Dial shaped for `lerobot-eval` (see
 lerobot_policy_ocn.envs.lerobot_env); entry points are imported only when an env is made, so registering them imports
-neither LeRobot nor MuJoCo.
+neither LeRobot nor MuJoCo. `OCN/BabyAI-OpenPickupSeq-v0` is registered where minigrid (the optional
+`babyai` extra) is importable, by `lerobot_policy_ocn.envs.babyai`, imported here; that package finds
+minigrid without importing it.
 """
 
 from gymnasium.envs.registration import register, registry
+
+from lerobot_policy_ocn.envs.babyai import BABYAI_ENV_ID  # noqa: F401  (a re-export; importing registers it)
 
 CRAFT_ENV_IDS = {"OCN/Craft-v0": "paper", "OCN/CraftFull-v0": "full"}
 CRAFT_LEROBOT_ENV_ID = "OCN/CraftLeRobot-v0"

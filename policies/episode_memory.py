@@ -10,6 +10,13 @@ which episodes train; only the loading of their frames moves here.
 
 The frames are stored once, unpadded, in episode order; `batch` pads the sampled episodes to the
 longest among them.
+
+Image features are decoded here once, with LeRobot's own decoders (`decode_video_frames` for video
+features, the `datasets` Image feature that LeRobot's parquet files use for image features), shrunk
+to the policy's input size (`fit_frames`) and kept as uint8: a 40 x 40 RGB frame is 4.8 kB, against
+77 kB for Craft's 160 x 160 render, so a dataset's frames fit in memory where its decoded video
+would not. LeRobot itself still decodes the image of every frame it samples for the batch (it loads
+every feature of the dataset), which the policy does not read.
 """
 
 from __future__ import annotations
@@ -24,9 +31,26 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import torch
 from torch import Tensor
+from torch.nn import functional as F
 
 EPISODE_INDEX = "episode_index"
 TASK_INDEX = "task_index"
+TIMESTAMP = "timestamp"
+
+
+def fit_frames(frames: Tensor, size: int) -> Tensor:
+    """Images [..., C, H, W] (uint8 0-255, or floats in [0, 1] as LeRobot's env pipeline gives them) as
+    uint8 [..., C, size, size]. Area averaging: Craft's 160-px render of 16-px tiles becomes 4 px a
+    tile at 40, each pixel the mean of a 4 x 4 block. The memory and the policy's inputs at inference
+    both pass through here, so a frame reads the same in training and when acting."""
+    if frames.dtype == torch.uint8 and tuple(frames.shape[-2:]) == (size, size):
+        return frames
+    pixels = frames.float() if frames.dtype == torch.uint8 else frames.float() * 255.0
+    lead = pixels.shape[:-3]
+    pixels = pixels.reshape(-1, *pixels.shape[-3:])
+    if tuple(pixels.shape[-2:]) != (size, size):
+        pixels = F.interpolate(pixels, size=(size, size), mode="area")
+    return pixels.round().clamp(0, 255).to(torch.uint8).reshape(*lead, *pixels.shape[-3:])
 
 
 @dataclass
@@ -43,17 +67,13 @@ class EpisodeMemory:
     split: str
 
     @classmethod
-    def read(cls, root: str | Path, keys: list[str]) -> EpisodeMemory:
-        """The columns `keys` of every episode of the LeRobot dataset at `root`. Where the dataset names a
+    def read(cls, root: str | Path, keys: list[str], images: dict[str, int] | None = None) -> EpisodeMemory:
+        """The columns `keys` of every episode of the LeRobot dataset at `root`, and each image feature of
+        `images` ({key: size}) as uint8 frames [F, C, size, size] (`read_images`). Where the dataset names a
         "train" split in `meta/info.json` (LeRobot's `splits`), only its episodes are trainable: the others
         are held out for evaluation, as `record_demos` writes them."""
         root = Path(root)
-        files = sorted((root / "data").glob("*/*.parquet"))
-        if not files:
-            raise FileNotFoundError(f"{root} has no data files under data/: is it a LeRobot dataset?")
-        columns = [*keys, EPISODE_INDEX, TASK_INDEX]
-        table = pa.concat_tables(pq.read_table(file, columns=columns) for file in files)
-        table = table.take(pc.sort_indices(table, sort_keys=[(EPISODE_INDEX, "ascending")]))
+        table = read_table(root, [*keys, *(images or {})])
         episode = table[EPISODE_INDEX].to_numpy()
         ids, first, counts = np.unique(episode, return_index=True, return_counts=True)
         size = int(ids.max()) + 1
@@ -69,6 +89,7 @@ class EpisodeMemory:
             in_split[lo:min(hi, size)] = True
             trainable &= in_split
         frames = {key: torch.from_numpy(_column_numpy(table[key]).copy()) for key in keys}
+        frames |= {key: read_images(root, table, key, size) for key, size in (images or {}).items()}
         return cls(frames, torch.from_numpy(start), torch.from_numpy(length), torch.from_numpy(task_index),
                    torch.from_numpy(trainable), split)
 
@@ -98,6 +119,67 @@ class EpisodeMemory:
         mask = steps < length[:, None]
         rows = self.start[episode_index, None] + torch.minimum(steps, length[:, None] - 1)
         return mask, {key: value[rows] for key, value in self.frames.items()}, self.task_index[episode_index]
+
+
+def read_table(root: Path, keys: list[str]) -> pa.Table:
+    """The parquet columns of `keys` (a video feature has none: its timestamps are read instead) with each
+    frame's episode, task and timestamp, in episode order (a stable sort: frames keep their order)."""
+    files = sorted((Path(root) / "data").glob("*/*.parquet"))
+    if not files:
+        raise FileNotFoundError(f"{root} has no data files under data/: is it a LeRobot dataset?")
+    stored = set(pq.read_schema(files[0]).names)
+    columns = list(dict.fromkeys([*(key for key in keys if key in stored), EPISODE_INDEX, TASK_INDEX, TIMESTAMP]))
+    table = pa.concat_tables(pq.read_table(file, columns=columns) for file in files)
+    return table.take(pc.sort_indices(table, sort_keys=[(EPISODE_INDEX, "ascending")]))
+
+
+def read_images(root: Path, table: pa.Table, key: str, size: int) -> Tensor:
+    """The frames of image feature `key` for the rows of `table` (`read_table`'s), as uint8 [F, C, size,
+    size] (`fit_frames`), decoded by LeRobot's own readers: a video feature through
+    `lerobot.datasets.video_utils.decode_video_frames`, one call per episode at its frames' timestamps
+    (shifted by the episode's start in its video file, as LeRobot's loader does); an image feature
+    (PNG bytes in the parquet file) through the `datasets` Image feature LeRobot stores it with."""
+    info = json.loads((Path(root) / "meta" / "info.json").read_text())
+    if info["features"][key]["dtype"] == "video":
+        return _read_video(Path(root), table, key, size, info["fps"])
+    from datasets import Image
+
+    decoder, mode = Image(), IMAGE_MODES[image_channels(info["features"][key])]
+    out = []
+    for cell in table[key].to_pylist():
+        picture = np.asarray(decoder.decode_example(cell).convert(mode))
+        picture = picture[:, :, None] if picture.ndim == 2 else picture
+        out.append(fit_frames(torch.from_numpy(picture.copy()).permute(2, 0, 1), size))
+    return torch.stack(out)
+
+
+# PIL modes of images of 1, 3 and 4 channels.
+IMAGE_MODES = {1: "L", 3: "RGB", 4: "RGBA"}
+
+
+def image_channels(feature: dict) -> int:
+    """Channels of an image or video feature of `meta/info.json` (LeRobot stores (height, width, channels))."""
+    shape, names = list(feature["shape"]), list(feature.get("names") or [])
+    return int(shape[0] if names[:1] in (["channels"], ["channel"]) else shape[-1])
+
+
+def _read_video(root: Path, table: pa.Table, key: str, size: int, fps: float) -> Tensor:
+    """`read_images` of a video feature: one LeRobot decode per episode, shrunk at once."""
+    from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+    from lerobot.datasets.video_utils import decode_video_frames
+
+    meta = LeRobotDatasetMetadata("local/episode_memory", root=root)
+    episode = table[EPISODE_INDEX].to_numpy()
+    timestamps = table[TIMESTAMP].to_numpy()
+    ids, first, counts = np.unique(episode, return_index=True, return_counts=True)
+    out = []
+    for e, start, count in zip(ids.tolist(), first.tolist(), counts.tolist(), strict=True):
+        offset = float(meta.episodes[e][f"videos/{key}/from_timestamp"])
+        query = [offset + float(t) for t in timestamps[start : start + count]]
+        frames = decode_video_frames(root / meta.get_video_file_path(e, key), query, tolerance_s=0.5 / fps,
+                                     return_uint8=True)
+        out.append(fit_frames(frames, size))
+    return torch.cat(out)
 
 
 def _column_numpy(column: pa.ChunkedArray) -> np.ndarray:

@@ -69,6 +69,14 @@ def test_registration_does_not_import_minigrid() -> None:
     parse_mission(done.stdout.strip())
 
 
+@needs_minigrid
+def test_envs_package_registers_babyai_with_craft_and_dial() -> None:
+    done = python("import sys, gymnasium, lerobot_policy_ocn.envs as envs; "
+                  f"assert {BABYAI_ENV_ID!r} in gymnasium.registry and envs.BABYAI_ENV_ID == {BABYAI_ENV_ID!r}; "
+                  "assert envs.DIAL_ENV_ID in gymnasium.registry; assert 'minigrid' not in sys.modules")
+    assert done.returncode == 0, done.stderr
+
+
 def test_bad_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     existing = tmp_path / "exists"
     existing.mkdir()

@@ -711,7 +711,7 @@ def test_config_defaults_and_registration():
     craft = OCNConfig(device="cpu", recipe="craft", obs_encoder="craft", action_type="discrete", n_actions=5)
     identity = NormalizationMode.IDENTITY
     assert craft.resolved and craft.n_options == 3
-    assert craft.normalization_mapping == {"STATE": identity, "ACTION": identity}
+    assert craft.normalization_mapping == {"STATE": identity, "ENV": identity, "VISUAL": identity, "ACTION": identity}
     dial = OCNConfig(device="cpu", recipe="dial", obs_encoder="identity", action_type="continuous")
     assert dial.normalization_mapping["ACTION"] is NormalizationMode.MEAN_STD and dial.n_options == 4
     assert craft.observation_delta_indices is None and craft.action_delta_indices is None  # single frames

@@ -39,7 +39,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.utils.constants import ACTION, OBS_STATE
+from lerobot.utils.constants import ACTION
 from lerobot_policy_ocn.ocn.encoders import make_encoder
 from lerobot_policy_ocn.ocn.heads import make_action_head
 from lerobot_policy_ocn.sequence import SequencePolicy, batch_mean, frame_mask
@@ -274,8 +274,9 @@ class CompILEPolicy(SequencePolicy, PreTrainedPolicy):
         """
         if ACTION not in batch:
             raise ValueError("compILE parses demonstrations: its encoder reads the actions, and the batch has none.")
-        mask = frame_mask(batch)
-        out = self._run(batch[OBS_STATE], batch[ACTION], mask, hard=True)
+        observation = self.observation(batch)
+        mask = frame_mask(batch, observation)
+        out = self._run(observation, batch[ACTION], mask, hard=True)
         in_segment, _ = segment_probabilities(out.boundaries)
         segment = in_segment[..., :-1].argmax(0)
         if self.config.latent_type == "concrete":
@@ -310,7 +311,7 @@ class CompILEPolicy(SequencePolicy, PreTrainedPolicy):
         t = 1 there is no evidence yet and the prior's latents are decoded instead. The history is
         re-segmented at every step (n_segments LSTM passes over it): quadratic in the episode's
         length, which Craft's episodes of at most 100 steps afford."""
-        state = batch[OBS_STATE]
+        state = self.observation(batch)
         size = state.shape[0]
         if self._history is not None and self._history[0].shape[0] != size:
             raise ValueError(f"Batch size changed from {self._history[0].shape[0]} to {size} without reset().")

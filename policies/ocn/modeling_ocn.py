@@ -126,7 +126,7 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
     def _unroll(self, state: Tensor, tasks: Sequence[str], real: Tensor | None = None) -> StepOutput:
         """Recurrence over windows [B, T, S] that each start an episode; outputs are time-major.
         `real` [B, T]: the frames whose outputs are read, each row's first ones (None: all); then only
-        those are computed (`OCNCore.unroll_frames`) and the others' outputs are zeros."""
+        those are encoded and computed (`OCNCore.unroll_frames`) and the others' outputs are zeros."""
         batch, steps = state.shape[:2]
         task_index = self.task_index(tasks, batch)
         start = torch.zeros(steps, batch, dtype=torch.bool, device=state.device)
@@ -136,17 +136,24 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             x = self.encoder(state.transpose(0, 1).contiguous())
             return self.core.unroll(x, self.core.initial_state(task_index), start)[1]
         order, inverse = longest_first(real)
-        x = self._training_features(state[order].transpose(0, 1).contiguous())
-        out = self.core.unroll_frames(x, self.core.initial_state(task_index[order]), start, real[order].transpose(0, 1))
+        real = real[order].transpose(0, 1)
+        x = self._training_features(state[order].transpose(0, 1).contiguous(), real)
+        out = self.core.unroll_frames(x, self.core.initial_state(task_index[order]), start, real)
         return StepOutput(out.weights[:, inverse], out.params[:, :, inverse], out.p_c[:, inverse], out.end[:, inverse],
                           out.option_end[:, inverse])
 
-    def _training_features(self, state: Tensor) -> Tensor | SparseRows:
-        """The cell input of time-major states for training: Craft's OMPN features as their set entries where
-        the option cells read them (`SparseRows`, the same first layer for a seventh of its cost), else dense."""
+    def _training_features(self, state: Tensor, real: Tensor) -> Tensor | SparseRows:
+        """The cell input of time-major states [T, B, W] for training: Craft's OMPN features as their set
+        entries where the option cells read them (`SparseRows`, the same first layer for a seventh of its
+        cost), else dense. Dense inputs encode the real frames ([T, B] `real`) alone, zeros elsewhere (the
+        core reads nothing else): an image encoder's cost follows the frames trained on, not the padding
+        of the batch's longest episode."""
         sparse = getattr(self.encoder, "sparse", None)
         rows = sparse(state) if sparse is not None and not self.config.decoder_latents else None
-        return self.encoder(state) if rows is None else rows
+        if rows is not None:
+            return rows
+        frames = self.encoder(state[real])
+        return frames.new_zeros(*real.shape, frames.shape[-1]).index_put_((real,), frames)
 
     def _component_log_prob(self, out: StepOutput, action: Tensor) -> Tensor:
         """log p_k(a_t) [T, 2N, B] of each mixture component, for time-major outputs and batch-major
@@ -195,12 +202,16 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         super()._remember_episodes(dataset_meta)
         if not self.config.recipe_terms.taught:
             return
+        if not self.config.state_keys:
+            raise ValueError("The dial recipe fits its taught split to the state features, and the policy reads "
+                             "images alone: take --policy.recipe=paper.")
         memory = self._episodes
         rows = memory.trainable.nonzero().squeeze(1)
         mask, frames, _ = memory.batch(rows)
-        labels, report = cached_split(frames[OBS_STATE].double().numpy(), frames[ACTION].double().numpy(),
-                                      mask.numpy(), self.config.n_options)
-        option = torch.full((len(memory.frames[OBS_STATE]),), -1, dtype=torch.long)
+        state = torch.cat([frames[key].double() for key in self.config.state_keys], dim=-1)
+        labels, report = cached_split(state.numpy(), frames[ACTION].double().numpy(), mask.numpy(),
+                                      self.config.n_options)
+        option = torch.full((len(memory.frames[ACTION]),), -1, dtype=torch.long)
         frame_rows = memory.start[rows, None] + torch.arange(mask.shape[1])
         option[frame_rows[mask]] = torch.from_numpy(labels)[mask]
         memory.frames[OPTION] = option
@@ -274,13 +285,14 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
         batch has actions action_log_prob [B, T] and component_log_prob [B, T, 2N], each mixture
         component's log p_k(a_t): the N continuing options, then the N restarted ones.
         """
-        out = self._unroll(batch[OBS_STATE], batch["task"])
+        observation = self.observation(batch)
+        out = self._unroll(observation, batch["task"])
         result = {
             "p_c": out.p_c.transpose(0, 1),
             "option": out.p_c.argmax(-1).transpose(0, 1),
             "end": out.end.transpose(0, 1),
             "option_end": out.option_end.transpose(0, 1),
-            "mask": frame_mask(batch),
+            "mask": frame_mask(batch, observation),
         }
         if ACTION in batch:
             component = self._component_log_prob(out, batch[ACTION])
@@ -288,10 +300,10 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             result["component_log_prob"] = component.permute(2, 0, 1)
         return result
 
-    def _episode_starts(self, batch: dict[str, Any]) -> Tensor:
+    def _episode_starts(self, batch: dict[str, Any], observation: Tensor) -> Tensor:
         """Rows [B] starting an episode this step (all of them right after `reset()`), creating the
         state of the configured execution then; a batch-size or execution change needs a reset."""
-        size = batch[OBS_STATE].shape[0]
+        size = observation.shape[0]
         hard = self.config.execution == "hard"
         start = self._state is None
         if start:
@@ -301,14 +313,15 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
             raise ValueError("The execution mode changed without reset().")
         elif self._state.p_c.shape[0] != size:
             raise ValueError(f"Batch size changed from {self._state.p_c.shape[0]} to {size} without reset().")
-        return torch.full((size,), start, dtype=torch.bool, device=batch[OBS_STATE].device)
+        return torch.full((size,), start, dtype=torch.bool, device=observation.device)
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
         """Advance every env's recurrence by one step and return its action as a chunk [B, 1, A]:
         the soft eq. 17 step, or under hard execution one sampled-hierarchy step (`OCNCore.hard_step`)."""
-        starts = self._episode_starts(batch)
-        projected = self.core.project(self.encoder(batch[OBS_STATE]))
+        observation = self.observation(batch)
+        starts = self._episode_starts(batch, observation)
+        projected = self.core.project(self.encoder(observation))
         greedy = self.config.inference_mode == "greedy"
         if self.config.execution == "hard":
             self._state, out = self.core.hard_step(self._state, projected, starts, greedy)

@@ -15,7 +15,7 @@ from torch import Tensor
 from torch.nn.utils.rnn import PackedSequence, pack_padded_sequence
 
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.utils.constants import ACTION, OBS_STATE
+from lerobot.utils.constants import ACTION
 from lerobot_policy_ocn.ocn.encoders import make_encoder
 from lerobot_policy_ocn.ocn.heads import make_action_head
 from lerobot_policy_ocn.sequence import SequencePolicy, frame_mask, window_nll
@@ -140,8 +140,9 @@ class OMPNPolicy(SequencePolicy, PreTrainedPolicy):
         zeros on padding), `depth` = its expected position [B, T], `mask` [B, T], and
         `action_log_prob` [B, T] when the batch has actions.
         """
-        mask = frame_mask(batch)
-        out = self._unroll(batch[OBS_STATE], mask, batch["task"])
+        observation = self.observation(batch)
+        mask = frame_mask(batch, observation)
+        out = self._unroll(observation, mask, batch["task"])
         expansion = out.expansion.transpose(0, 1)
         result = {"expansion": expansion, "depth": expected_depth(expansion), "mask": mask}
         if ACTION in batch:
@@ -151,7 +152,7 @@ class OMPNPolicy(SequencePolicy, PreTrainedPolicy):
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Any], **kwargs: Any) -> Tensor:
         """Advance every env's memory by one step and return its action as a chunk [B, 1, A]."""
-        state = batch[OBS_STATE]
+        state = self.observation(batch)
         size = state.shape[0]
         if self._memory is not None and self._memory.shape[1] != size:
             raise ValueError(f"Batch size changed from {self._memory.shape[1]} to {size} without reset().")

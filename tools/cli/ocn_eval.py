@@ -1,10 +1,14 @@
 """`ocn-eval`: how well a trained policy (OCN, or a baseline) parses held-out demonstrations, and how well it acts.
 
-On the split's episodes (default "val") it runs the policy over each whole episode and scores its
-parse against the ground-truth subtasks with the shared parsing metrics: F1 at tolerance 0 and 1
-and task alignment from the predicted boundaries, NMI from per-step labels (OCN: the chosen option
-argmax p^c), and the mean NLL per frame of the demonstrated actions (`action_nll`: OCN, OMPN).
-In the dataset's world (Craft or Dial, read from the dataset; `lerobot_policy_ocn.tools.worlds`) it measures the
+On the split's episodes (default "val"; a dataset that names no "val" split: its last fifth, then
+marked not held out when the policy trained on them) it runs the policy over each whole episode and
+reports what needs no ground truth (`label_free`: option usage, segments per episode, segment
+lengths, switches per frame; and the mean NLL per frame of the demonstrated actions, `action_nll`:
+OCN, OMPN). Where the dataset has the ground-truth subtask columns, it scores the parse against them
+with the shared parsing metrics: F1 at tolerance 0 and 1 and task alignment from the predicted
+boundaries, NMI from per-step labels (OCN: the chosen option argmax p^c); without them those are
+null, and "not_applicable" says why.
+In the dataset's world (Craft, Dial or BabyAI, read from the dataset; `lerobot_policy_ocn.tools.worlds`) it measures the
 whole policy's free-run success per task (Dial: per PIN) and, for a policy made of
 options, each frozen option alone on each subtask (paper table 1; Dial: each digit), drawn as a
 PNG beside the JSON. With --oracle-tasks it also runs the frozen options on other tasks (the
@@ -110,14 +114,22 @@ def check_outputs(args: argparse.Namespace) -> None:
         check_can_create(args.mcap, "--mcap")
 
 
+GROUND_TRUTH = (
+    "the dataset has no ground-truth subtask columns (subtask.index, subtask.id): F1, alignment and NMI score a "
+    "parse against them, so only the label-free figures are reported"
+)
+
+
 def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     """Everything `ocn-eval` reports, as the JSON it writes."""
     import torch
 
-    from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, read_info, split_episodes
+    from lerobot_policy_ocn.ocn_data.episodes_table import held_out, read_info, split_episodes
     from lerobot_policy_ocn.tools.rl import rollouts
-    from lerobot_policy_ocn.tools.eval.parsing import (PARSERS, action_nll, load_policy, parse_statistics, parser_of,
-                                       score_segmentations)
+    from lerobot_policy_ocn.tools.eval.parsing import (
+        PARSERS, action_nll, label_free_figures, load_policy, parse_statistics, parser_of, policy_episodes,
+        score_segmentations,
+    )
     from lerobot_policy_ocn.tools.worlds import world_of
 
     check_outputs(args)
@@ -133,6 +145,11 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     elif args.boundary_threshold is not None:
         raise ValueError(f"--boundary-threshold sets an ompn checkpoint's read-out; `{policy.name}` has none.")
     has_options = isinstance(policy, rollouts.OptionPolicy)
+    cannot_act = acting_problem(world, policy)
+    acts = cannot_act is None
+    if (args.mcap is not None or args.oracle_tasks is not None) and not acts:
+        raise ValueError(f"--mcap and --oracle-tasks run the policy in its world's env, and {cannot_act}: leave them "
+                         "out.")
     if args.mcap is not None and not has_options:
         raise ValueError(f"--mcap logs the option choices of a policy made of options; `{policy.name}` has none.")
     oracle_tasks = None
@@ -144,7 +161,8 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         oracle_tasks = world.parse_task_list(args.oracle_tasks)
     torch.manual_seed(args.seed)  # the policy samples its actions: same seed, same rollouts
     started = time.perf_counter()
-    episodes = load_episodes(args.root, split_episodes(args.root, args.split), args.max_episodes)
+    selected = split_episodes(args.root, args.split)
+    episodes = policy_episodes(policy, args.root, selected, args.max_episodes)
     parses = parser.segment(policy, preprocessor, episodes, args.batch_size)
     scores = score_segmentations(episodes, parses)
 
@@ -156,12 +174,11 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         if unmeasured:
             raise ValueError(f"--oracle-tasks uses subtask(s) {unmeasured} that no task of the dataset holds, so no "
                              f"option is measured on them (the option table's subtasks: {subtasks}).")
-    acting = world.rollouts()
     option_table = None
-    not_applicable = {}
-    if has_options:
+    not_applicable = {} if episodes.labelled else {"parsing_scores": GROUND_TRUTH}
+    if has_options and acts and subtasks:
         table = rollouts.option_subtask_success(
-            policy, preprocessor, postprocessor, acting, subtasks, args.rollouts, args.seed
+            policy, preprocessor, postprocessor, world.rollouts(), subtasks, args.rollouts, args.seed
         )
         option_table = {
             "subtasks": subtasks,
@@ -169,30 +186,24 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
             "table": table.success.round(4).tolist(),
             "stopped_by_termination": table.stopped.round(4).tolist(),
         }
-    else:
+    elif not has_options:
         not_applicable["option_subtask_success"] = (
             f"`{policy.name}` has no options that act alone; the table runs each frozen option on each subtask"
         )
-    if scores["nmi"] is None and parser.no_labels:
+    else:
+        not_applicable["option_subtask_success"] = f"{cannot_act}: the table runs each frozen option in the world's env"
+    if scores["nmi"] is None and parser.no_labels and episodes.labelled:
         not_applicable["nmi"] = parser.no_labels
     nll = None
     if parser.no_action_nll:
         not_applicable["action_nll"] = parser.no_action_nll
     else:
         nll = action_nll(parses)
-    log = None
-    if args.mcap is not None:
-        from lerobot_policy_ocn.tools.viz.rollout_mcap import RolloutMcapWriter
-
-        state_names = info["features"]["observation.state"]["names"]
-        log = RolloutMcapWriter(args.mcap, info["fps"], list(state_names), str(args.policy))
-    try:
-        success = rollouts.free_run_success(
-            policy, preprocessor, postprocessor, acting, tasks, args.rollouts, args.seed, log
-        )
-    finally:
-        if log is not None:
-            log.close()
+    success = None
+    if acts:
+        success = free_runs(args, policy, preprocessor, postprocessor, world, tasks, info)
+    else:
+        not_applicable["success_rate"] = f"{cannot_act}: free-run success needs the policy acting in its world"
     oracle = None  # after the free runs, so that asking for it leaves every other figure as it was
     if oracle_tasks is not None:
         oracle = rollouts.oracle_report(
@@ -203,15 +214,18 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
     return {
         **scores,
         "action_nll": nll,
-        "parse_statistics": parse_statistics(episodes, parses),
+        "held_out": held_out(args.root, selected),
+        "label_free": label_free_figures(episodes, parses),
+        "parse_statistics": parse_statistics(episodes, parses) if episodes.labelled else None,
         "option_subtask_success": option_table,
         **({"oracle_controller": oracle} if oracle is not None else {}),
         **({"not_applicable": not_applicable} if not_applicable else {}),
         "success_rate": success,
-        "mean_success_rate": float(np.mean(list(success.values()))),
+        "mean_success_rate": None if success is None else float(np.mean(list(success.values()))),
         "episodes_parsed": len(parses),
         "frames_parsed": int(episodes.lengths.sum()),
         "split": args.split,
+        "episodes": [selected.start, selected.stop],
         "rollouts_per_cell": args.rollouts,
         "policy": str(args.policy),
         "policy_type": policy.name,
@@ -220,6 +234,62 @@ def evaluate(args: argparse.Namespace) -> dict[str, Any]:
         "dataset": {"root": str(args.root), "repo_id": args.repo_id},
         "wall_s": round(time.perf_counter() - started, 2),
     }
+
+
+def acting_problem(world: Any, policy: Any) -> str | None:
+    """Why the policy cannot act in the dataset's world (None: it can): a dataset of no world these tools
+    know, or a policy that reads more than the `observation.state` the batch worlds give."""
+    from lerobot.utils.constants import OBS_STATE
+
+    from lerobot_policy_ocn.tools.eval.parsing import input_keys
+
+    if world.rollouts is None:
+        return f"the dataset is of no world these tools know (robot_type {world.name!r} in meta/info.json)"
+    if input_keys(policy) != [OBS_STATE]:
+        return f"the {world.name} env gives `{OBS_STATE}` alone and the policy reads {input_keys(policy)}"
+    return None
+
+
+def free_runs(args: argparse.Namespace, policy: Any, preprocessor: Any, postprocessor: Any, world: Any,
+              tasks: list[str], info: dict[str, Any]) -> dict[str, float]:
+    """The whole policy's success per task in its world, logged to --mcap when asked."""
+    from lerobot_policy_ocn.tools.rl import rollouts
+
+    log = None
+    if args.mcap is not None:
+        from lerobot_policy_ocn.tools.viz.rollout_mcap import RolloutMcapWriter
+
+        state_names = info["features"]["observation.state"]["names"]
+        log = RolloutMcapWriter(args.mcap, info["fps"], list(state_names), str(args.policy))
+    try:
+        return rollouts.free_run_success(
+            policy, preprocessor, postprocessor, world.rollouts(), tasks, args.rollouts, args.seed, log
+        )
+    finally:
+        if log is not None:
+            log.close()
+
+
+def summary_line(result: dict[str, Any]) -> str:
+    """The one line ocn-eval prints: the parsing scores where there is ground truth, the label-free
+    figures always, success where the world runs."""
+    def figure(value: float | None) -> str:
+        return "n/a" if value is None else f"{value:.3f}"
+
+    free = result["label_free"]
+    parts = [] if result["f1_tol1"] is None else [
+        f"F1@0 {figure(result['f1_tol0'])}  F1@1 {figure(result['f1_tol1'])}  align {figure(result['align_acc'])}  "
+        f"NMI {figure(result['nmi'])}"]
+    parts.append(f"NLL {figure(result['action_nll'])}{'' if result['held_out'] else ' (not held out)'}  "
+                 f"segments/episode {free['segments_per_episode']:.2f}  "
+                 f"mean segment {free['segment_length']['mean']:.1f} frames  switches/frame {free['switch_rate']:.3f}")
+    if "option_usage" in free:
+        parts.append("option usage " + " ".join(f"{share:.2f}" for share in free["option_usage"]))
+    if result["success_rate"] is not None:
+        parts.append(f"success {result['mean_success_rate']:.3f}")
+    if result["f1_tol1"] is None:
+        parts.append("(no ground-truth subtask columns: F1, alignment and NMI need them)")
+    return "  ".join(parts)
 
 
 def write_result(result: dict[str, Any], args: argparse.Namespace) -> list[Path]:
@@ -251,11 +321,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ocn-eval: cannot write {error.filename or args.out} ({error.strerror or error}); the result is on "
               "stdout above: free space or choose another --out", file=sys.stderr)
         return 1
-    nmi = "n/a" if result["nmi"] is None else f"{result['nmi']:.3f}"
-    print(
-        f"F1@0 {result['f1_tol0']:.3f}  F1@1 {result['f1_tol1']:.3f}  align {result['align_acc']:.3f}  "
-        f"NMI {nmi}  success {result['success_rate']}"
-    )
+    print(summary_line(result))
     print(f"wrote {' and '.join(map(str, written))}")
     return 0
 

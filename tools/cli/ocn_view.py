@@ -1,20 +1,23 @@
-"""`ocn-view`: recorded Craft or Dial demonstrations in rerun, with a trained OCN's options drawn over them.
+"""`ocn-view`: recorded demonstrations in rerun, with a trained OCN's options drawn over them.
 
 Logs the selected episodes of a dataset, with or without a policy, to an .rrd file (--save), a
 spawned viewer (--spawn) or a served web viewer (--serve); --png draws the segmentation of a few
-episodes with matplotlib (tools/segmentation_plot.py) instead of or besides the recording.
+episodes with matplotlib (tools/viz/segmentation_plot.py) instead of or besides the recording.
 
 Timeline `frame` (a sequence): the logged episodes laid one after another, so step t of an
 episode is frame offset + t, its offset being the summed lengths of the episodes logged before
 it; scrubbing or playing runs through all of them. The `segments/episode` lane and the
 `log/episode` lines show where each episode starts, and a frame after the last step ends the
-lanes. The world (read from the dataset) draws its own scene and series (`tools/view_scenes.py`:
+lanes. The world (read from the dataset) draws its own scene and series (`tools/viz/scenes.py`:
 Craft's grid and action; Dial's fingertip and keys in 3D, joint angles, fingertip-to-key distances
-and motor controls). Every world's entity paths ([model]: only with --policy):
+and motor controls; BabyAI and the datasets of worlds the tools do not know, the action alone). A
+dataset without ground-truth subtask columns has no subtask lane nor usage per subtask: the option
+lane and the switches alone. Every world's entity paths ([model]: only with --policy;
+[truth]: only where the dataset has ground truth):
 
     segments/episode         StateChange   "episode 16: get wood, get iron", from the episode's first step
     segments/subtask         StateChange   the true subtask ("A get wood", "press 1"), from the first step of each
-                                           segment
+                                           segment [truth]
     segments/option          StateChange   the chosen option argmax p^c ("option 2"), from each switch [model]
     p_c/option_<k>           Scalars       p^c_t of option k, the controller's option distribution [model]
     termination/e_t          Scalars       e_t, the termination probability (1 at an episode's first step) [model]
@@ -22,7 +25,7 @@ and motor controls). Every world's entity paths ([model]: only with --policy):
     log/episode              TextLog       one line per episode, at its first step
     log/switch               TextLog       one line per option switch: episode, step, old and new option [model]
     summary/table            TextDocument  what was logged and, with a model, the option usage per subtask
-    summary/usage/<code>     BarChart      share of the subtask's steps spent in each chosen option [model]
+    summary/usage/<code>     BarChart      share of the subtask's steps spent in each chosen option [model, truth]
                                            (code: Craft's letter, Dial's digit)
 
 Styles (series names and colours, the state lanes' colours, the image format) and the summary
@@ -61,25 +64,28 @@ if TYPE_CHECKING:
 
 TIMELINE = "frame"
 TERMINATION_COLOUR = (90, 90, 90)
+# A contiguous range of episodes and how many of them to read.
+Selected = tuple[range, int]
 
 
 @dataclass
 class Episode:
-    """One episode to log, cut to its real steps: state [T, S], action [T, A], subtask_index and
-    subtask_id [T], and the policy's parse (None without a policy)."""
+    """One episode to log, cut to its real steps: state [T, S] (None where the dataset has no
+    `observation.state`), action [T, A], subtask_index and subtask_id [T] (None without ground truth),
+    and the policy's parse (None without a policy)."""
 
     index: int
     task: str
-    state: np.ndarray
+    state: np.ndarray | None
     action: np.ndarray
-    subtask_index: np.ndarray
-    subtask_id: np.ndarray
+    subtask_index: np.ndarray | None
+    subtask_id: np.ndarray | None
     parse: EpisodeParse | None
 
     @property
     def length(self) -> int:
         """Steps of the episode (the action may hold several values per step)."""
-        return self.subtask_id.size
+        return len(self.action)
 
     @property
     def title(self) -> str:
@@ -130,31 +136,32 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def _episode_groups(
-    root: Path, info: dict[str, Any], split: str, selection: int | list[int]
-) -> list[EpisodeArrays]:
+def _episode_ranges(root: Path, info: dict[str, Any], split: str, selection: int | list[int]) -> list[Selected]:
     """The split's first `selection` episodes as one group, or each listed episode as its own group
-    (load_episodes reads a contiguous range; listed episodes may lie far apart)."""
-    from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+    (episodes are read as contiguous ranges; listed episodes may lie far apart): (range, at most)."""
+    from lerobot_policy_ocn.ocn_data.episodes_table import split_episodes
 
     if isinstance(selection, int):
-        return [load_episodes(root, split_episodes(root, split), selection)]
+        return [(split_episodes(root, split), selection)]
     total = info["total_episodes"]
     outside = sorted({i for i in selection if not 0 <= i < total})
     if outside:
         raise ValueError(f"Episodes {outside} are not in {root}, which has episodes 0 to {total - 1}.")
-    return [load_episodes(root, range(i, i + 1)) for i in selection]
+    return [(range(i, i + 1), 1) for i in selection]
 
 
 def _episodes_of(group: EpisodeArrays, parses: list[EpisodeParse | None]) -> list[Episode]:
+    def cut(values: np.ndarray | None, i: int, n: int) -> np.ndarray | None:
+        return None if values is None else values[i, :n]
+
     return [
         Episode(
             index=int(group.episode_index[i]),
             task=group.tasks[i],
-            state=group.state[i, :n],
+            state=cut(group.state, i, n),
             action=group.action[i, :n],
-            subtask_index=group.subtask_index[i, :n],
-            subtask_id=group.subtask_id[i, :n],
+            subtask_index=cut(group.subtask_index, i, n),
+            subtask_id=cut(group.subtask_id, i, n),
             parse=parse,
         )
         for i, (n, parse) in enumerate(zip(group.lengths, parses, strict=True))
@@ -162,14 +169,22 @@ def _episodes_of(group: EpisodeArrays, parses: list[EpisodeParse | None]) -> lis
 
 
 def load_view(args: argparse.Namespace, info: dict[str, Any]) -> list[Episode]:
-    """The selected episodes, parsed by the policy when one is given. Everything that can fail on
-    bad input happens here, before any file or viewer is opened."""
-    groups = _episode_groups(args.root, info, args.split, args.episodes)
+    """The selected episodes, parsed by the policy when one is given (read with every input it reads).
+    Everything that can fail on bad input happens here, before any file or viewer is opened."""
+    ranges = _episode_ranges(args.root, info, args.split, args.episodes)
     if args.policy is None:
+        from lerobot_policy_ocn.ocn_data.episodes_table import LABELS, load_episodes
+
+        if not all(key in info["features"] for key in LABELS):
+            raise ValueError(f"{args.root} has no ground-truth subtask columns, so without --policy there is nothing "
+                             "to draw: pass a policy to see its option switches.")
+        groups = [load_episodes(args.root, episodes, most) for episodes, most in ranges]
         return [e for group in groups for e in _episodes_of(group, [None] * len(group.tasks))]
-    from lerobot_policy_ocn.tools.eval.parsing import load_ocn, parse_episodes  # torch and LeRobot: only with a policy
+    # torch and LeRobot: only with a policy
+    from lerobot_policy_ocn.tools.eval.parsing import load_ocn, parse_episodes, policy_episodes
 
     policy, preprocessor, _ = load_ocn(args.policy, args.device)
+    groups = [policy_episodes(policy, args.root, episodes, most) for episodes, most in ranges]
     return [
         e for group in groups
         for e in _episodes_of(group, parse_episodes(policy, preprocessor, group, args.batch_size))
@@ -217,10 +232,12 @@ def _log_episode(rec: rr.RecordingStream, episode: Episode, offset: int, world: 
     scene.log_steps(rec, episode, _at(offset, steps))
     rec.send_columns("segments/episode", indexes=_at(offset, [0]),
                      columns=rr.StateChange.columns(state=[episode.title]))
-    starts = segment_starts(episode.subtask_index)
-    truth = [world.subtask_labels[s] for s in episode.subtask_id[starts]]
-    rec.send_columns("segments/subtask", indexes=_at(offset, starts), columns=rr.StateChange.columns(state=truth))
-    line = f"{episode.title} ({steps.size} steps): subtasks {', '.join(truth)}"
+    line = f"{episode.title} ({steps.size} steps)"
+    if episode.subtask_index is not None:
+        starts = segment_starts(episode.subtask_index)
+        truth = [world.subtask_labels[s] for s in episode.subtask_id[starts]]
+        rec.send_columns("segments/subtask", indexes=_at(offset, starts), columns=rr.StateChange.columns(state=truth))
+        line += f": subtasks {', '.join(truth)}"
     rec.send_columns("log/episode", indexes=_at(offset, [0]),
                      columns=rr.TextLog.columns(text=[line], level=["INFO"]))
     if episode.parse is not None:
@@ -258,6 +275,11 @@ def _summary_markdown(
     steps = sum(e.length for e in episodes)
     policy = f"policy `{args.policy}`" if args.policy else "no policy (ground truth only)"
     text = f"**{args.repo_id}** (`{args.root}`): {len(episodes)} episodes, {steps} steps; {policy}.\n"
+    if usage is None and episodes[0].parse is not None:
+        options = np.concatenate([e.parse.option for e in episodes])
+        shares = np.bincount(options, minlength=episodes[0].parse.p_c.shape[1]) / options.size
+        return text + "\nNo ground-truth subtasks; share of the steps spent in each chosen option (argmax p^c): " + \
+            ", ".join(f"{option_label(k)} {share:.2f}" for k, share in enumerate(shares)) + ".\n"
     if usage is None:
         return text
     options = [option_label(k) for k in range(usage.shape[1])]
@@ -278,7 +300,9 @@ def _summary_markdown(
 def _log_summary(rec: rr.RecordingStream, episodes: list[Episode], args: argparse.Namespace, world: World) -> None:
     """Static cross-episode summary: the table, and one bar chart of option usage per subtask."""
     parse = episodes[0].parse
-    usage = None if parse is None else option_usage(episodes, len(world.subtask_codes), parse.p_c.shape[1])
+    labelled = episodes[0].subtask_id is not None
+    usage = None if parse is None or not labelled else \
+        option_usage(episodes, len(world.subtask_codes), parse.p_c.shape[1])
     markdown = _summary_markdown(episodes, usage, args, world)
     rec.log("summary/table", rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
     if usage is None:
@@ -300,7 +324,8 @@ def log_episodes(
     for episode in tqdm(episodes, desc="ocn-view", unit="ep"):
         _log_episode(rec, episode, offset, world, scene)
         offset += episode.length
-    lanes = ["segments/episode", "segments/subtask"] + ([] if parse is None else ["segments/option"])
+    lanes = ["segments/episode"] + (["segments/subtask"] if episodes[0].subtask_id is not None else []) + \
+        ([] if parse is None else ["segments/option"])
     for lane in lanes:  # an empty state ends the last segment of every lane
         rec.send_columns(lane, indexes=_at(offset, [0]), columns=rr.StateChange.columns(state=[""]))
 
@@ -357,7 +382,7 @@ def _open_recording(args: argparse.Namespace, layout: rrb.Blueprint) -> rr.Recor
 def write_recording(episodes: list[Episode], args: argparse.Namespace, fps: float, world: World) -> rr.RecordingStream:
     """Log everything to the chosen sink and flush. Returns the stream: a served one lives only as
     long as it does."""
-    subtasks = sorted({int(s) for e in episodes for s in np.unique(e.subtask_id)})
+    subtasks = sorted({int(s) for e in episodes if e.subtask_id is not None for s in np.unique(e.subtask_id)})
     scene = world.scene()
     rec = _open_recording(args, blueprint(subtasks, episodes[0].parse is not None, fps, world, scene))
     log_episodes(rec, episodes, args, world, scene)
@@ -369,8 +394,9 @@ def write_png(episodes: list[Episode], args: argparse.Namespace, world: World) -
     """The segmentation of the first --png-episodes episodes, drawn with matplotlib."""
     views = [EpisodeView(e.title, e.subtask_index, e.subtask_id, e.parse) for e in episodes[: args.png_episodes]]
     args.png.parent.mkdir(parents=True, exist_ok=True)
-    title = f"{args.repo_id}: true subtasks against chosen options\npolicy {args.policy}"
-    plot_segmentation(views, args.png, title if args.policy else f"{args.repo_id}: true subtasks",
+    truth = "true subtasks" if episodes[0].subtask_id is not None else "no ground truth"
+    title = f"{args.repo_id}: {truth} against chosen options\npolicy {args.policy}"
+    plot_segmentation(views, args.png, title if args.policy else f"{args.repo_id}: {truth}",
                       world.subtask_codes, world.subtask_labels)
 
 

@@ -133,7 +133,7 @@ def option_table_summary(table: np.ndarray) -> dict[str, Any]:
     options, subtasks = linear_sum_assignment(table, maximize=True)
     matched = {int(subtask): int(option) for option, subtask in zip(options, subtasks, strict=True)}
     diagonal = [float(table[option, subtask]) for subtask, option in sorted(matched.items())]
-    off = table[list(matched.values())].copy()
+    off = table[[option for _, option in sorted(matched.items())]].copy()  # row k: the option of subtask k's match
     for k, (subtask, _) in enumerate(sorted(matched.items())):
         off[k, subtask] = -np.inf
     off_max = float(off.max()) if np.isfinite(off).any() else 0.0

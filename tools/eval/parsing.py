@@ -7,6 +7,9 @@ gives every model type's parse in the one form the shared parsing metrics read (
 per episode), through that type's entry in `PARSERS`: a new model type adds an entry there.
 `choose_boundary_threshold` tunes OMPN's count-free read-out on training episodes;
 `validation_nll` scores a checkpoint's fit to held-out demonstrations, labels unread.
+`policy_episodes` reads a dataset's episodes with every input feature a policy reads (after checking
+that the dataset has them, as the policy saw them in training); `label_free_figures` describes a
+parse without any ground truth (option usage, segment lengths, switch rate).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import numpy as np
 import torch
 
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.utils.constants import ACTION, OBS_STATE
+from lerobot.utils.constants import ACTION
 from lerobot_policy_ocn.ocn_data.episodes_table import EpisodeArrays
 from lerobot_policy_ocn.ocn import OCNPolicy
 from lerobot_policy_ocn.ompn.modeling_ompn import expansion_boundaries, threshold_boundaries
@@ -161,15 +164,56 @@ def check_tasks(policy: PreTrainedPolicy, episodes: EpisodeArrays) -> None:
         raise ValueError(f"The dataset has tasks {unknown} that the policy was not trained on ({policy.config.tasks}).")
 
 
+def input_keys(policy: PreTrainedPolicy) -> list[str]:
+    """The dataset features a policy reads: its state features, then its image features."""
+    return [*policy.config.state_keys, *policy.config.image_keys]
+
+
+def check_dataset(policy: PreTrainedPolicy, root: Path) -> None:
+    """The dataset at `root` must hold every feature the policy reads, in the shape it was trained on, and
+    an action of its width: anything else is a one-line ValueError naming the feature."""
+    from lerobot.utils.feature_utils import dataset_to_policy_features
+
+    from lerobot_policy_ocn.ocn_data.episodes_table import read_info
+
+    stored = read_info(root)["features"]
+    found = dataset_to_policy_features({key: ft for key, ft in stored.items() if key in (*input_keys(policy), ACTION)})
+    wanted = {**policy.config.input_features, **policy.config.output_features}
+    missing = ", ".join(f"`{key}`" for key in wanted if key not in found)
+    if missing:
+        raise ValueError(f"{root} has no {missing}, which this {policy.name} policy reads: pass the dataset it was "
+                         f"trained on, or one with the same features (it has {sorted(stored)}).")
+    for key, feature in wanted.items():
+        if tuple(found[key].shape) != tuple(feature.shape):
+            raise ValueError(f"`{key}` has shape {tuple(found[key].shape)} in {root}, but this {policy.name} policy "
+                             f"was trained on shape {tuple(feature.shape)}: pass the dataset it was trained on.")
+
+
+def policy_episodes(policy: PreTrainedPolicy, root: Path, episodes: range,
+                    max_episodes: int | None = None) -> EpisodeArrays:
+    """The selected episodes of the dataset at `root` (`load_episodes`) with every input the policy reads,
+    images at its `image_size`, after `check_dataset`."""
+    from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes
+
+    check_dataset(policy, root)
+    return load_episodes(root, episodes, max_episodes, input_keys(policy), policy.config.image_size)
+
+
 def parsed_episodes(
     policy: PreTrainedPolicy, preprocessor: Processor, episodes: EpisodeArrays, batch_size: int, keys: Sequence[str]
 ) -> Iterator[dict[str, np.ndarray]]:
-    """`policy.parse`'s outputs `keys` for each whole episode, cut to its real steps, in episode order."""
+    """`policy.parse`'s outputs `keys` for each whole episode, cut to its real steps, in episode order.
+    The episodes must hold the policy's inputs (`policy_episodes`)."""
     check_tasks(policy, episodes)
+    missing = [key for key in input_keys(policy) if key not in episodes.inputs]
+    if missing:
+        raise ValueError(f"The episodes were read without {missing}, which the policy reads: read them with "
+                         "lerobot_policy_ocn.tools.eval.parsing.policy_episodes.")
     for start in range(0, len(episodes.tasks), batch_size):
         rows = slice(start, start + batch_size)
+        inputs = {key: torch.from_numpy(episodes.inputs[key][rows]) for key in input_keys(policy)}
         batch = {
-            OBS_STATE: torch.from_numpy(episodes.state[rows]).float(),
+            **{key: value if value.dtype == torch.uint8 else value.float() for key, value in inputs.items()},
             ACTION: torch.from_numpy(episodes.action[rows]).float(),
             f"{ACTION}_is_pad": torch.from_numpy(~episodes.mask[rows]),
             "task": episodes.tasks[rows],
@@ -222,8 +266,13 @@ def _ompn_read_out(
     episodes: EpisodeArrays, parsed: Sequence[dict[str, np.ndarray]], threshold: float | None
 ) -> list[Segmentation]:
     """The Segmentations of an OMPN parse (`_ompn_parse`) under one read-out: top-k told each
-    episode's count (`threshold` None) or count-free at `threshold`."""
-    counts = [boundaries_from_labels(episodes.subtask_index[i, :n]).size for i, n in enumerate(episodes.lengths)]
+    episode's count (`threshold` None) or count-free at `threshold`. Episodes without ground truth have
+    no count to tell: they need the count-free read-out."""
+    if threshold is None and not episodes.labelled:
+        raise ValueError("OMPN's top-k read-out is told each episode's number of subtasks, which a dataset without "
+                         "ground truth does not have: pass --boundary-threshold (e.g. 0.5) for its count-free one.")
+    counts = [boundaries_from_labels(episodes.subtask_index[i, :n]).size if threshold is None else 0
+              for i, n in enumerate(episodes.lengths)]
     return [
         Segmentation(
             expansion_boundaries(episode["depth"], k) if threshold is None
@@ -297,10 +346,10 @@ def validation_nll(checkpoint: Path, root: Path, max_episodes: int | None = None
     """`action_nll` of a checkpoint on the validation split of the dataset at `root` (its first
     `max_episodes` episodes): how well it clones held-out demonstrations, read without their subtask
     labels, so that it may choose between runs without looking at the scores it is judged on."""
-    from lerobot_policy_ocn.ocn_data.episodes_table import load_episodes, split_episodes
+    from lerobot_policy_ocn.ocn_data.episodes_table import split_episodes
 
     policy, preprocessor, _ = load_policy(checkpoint)
-    episodes = load_episodes(root, split_episodes(root, "val"), max_episodes)
+    episodes = policy_episodes(policy, root, split_episodes(root, "val"), max_episodes)
     return action_nll(segment_episodes(policy, preprocessor, episodes))
 
 
@@ -311,11 +360,30 @@ def segment_episodes(
     return parser_of(policy).segment(policy, preprocessor, episodes, batch_size)
 
 
+def label_free_figures(episodes: EpisodeArrays, parses: Sequence[Segmentation]) -> dict[str, Any]:
+    """What a parse says without any ground truth: `segments_per_episode`; `segment_length` (frames per
+    predicted segment: mean, median, min, max); `switch_rate`, the switches (segment starts after an
+    episode's first frame) per frame; and for labelled parses `option_usage`, each label's share of
+    the frames ([label 0, 1, ... up to the highest used]: an unused option shows as 0)."""
+    lengths = np.concatenate([np.diff(np.r_[-1, parse.boundaries]) for parse in parses])
+    switches = sum(len(parse.boundaries) - 1 for parse in parses)
+    figures: dict[str, Any] = {
+        "segments_per_episode": float(np.mean([len(parse.boundaries) for parse in parses])),
+        "segment_length": {"mean": float(lengths.mean()), "median": float(np.median(lengths)),
+                           "min": int(lengths.min()), "max": int(lengths.max())},
+        "switch_rate": switches / int(episodes.lengths.sum()),
+    }
+    if all(parse.labels is not None for parse in parses):
+        labels = np.concatenate([parse.labels for parse in parses]).astype(np.int64)
+        figures["option_usage"] = _shares(labels, labels.max() + 1)
+    return figures
+
+
 def parse_statistics(episodes: EpisodeArrays, parses: Sequence[Segmentation]) -> dict[str, Any]:
-    """How a parse cuts the episodes, which the scores alone hide: predicted and true segments per
-    episode, and, for labelled parses, each label's share of the frames ([share of label 0, 1, ...,
-    up to the highest label used]), where an unused option shows as a share of 0 (or is past the
-    list's end) and a parse that never switches as one segment; and `label_by_subtask`: for each true
+    """How a parse cuts the episodes against their ground truth, which the scores alone hide: predicted
+    and true segments per episode, and, for labelled parses, each label's share of the frames ([share
+    of label 0, 1, ..., up to the highest label used]), where an unused option shows as a share of 0
+    (or is past the list's end) and a parse that never switches as one segment; and `label_by_subtask`: for each true
     subtask id, the share of its frames under each label (a pair of options that split two subtasks
     half and half between them, which NMI only summarises, shows here as two rows of halves); and
     `label_by_subtask_third`: the same shares in the first, middle and last third of each true
@@ -414,10 +482,16 @@ def _shares(labels: np.ndarray, n_labels: int) -> list[float] | None:
     return (np.bincount(labels, minlength=n_labels) / labels.size).round(4).tolist() if labels.size else None
 
 
+SCORES = ("f1_tol0", "f1_tol1", "align_acc", "nmi")
+
+
 def score_segmentations(episodes: EpisodeArrays, parses: Sequence[Segmentation]) -> dict[str, float | None]:
     """The shared parsing metrics of one Segmentation per episode against the episodes' ground truth:
     f1_tol0, f1_tol1 and align_acc from the boundaries, nmi from the labels (None without labels).
-    Only the predictions count, never which model made them."""
+    Only the predictions count, never which model made them. Episodes without ground truth have no
+    scores: every one is None."""
+    if not episodes.labelled:
+        return dict.fromkeys(SCORES)
     segments = [episodes.subtask_index[i, :n] for i, n in enumerate(episodes.lengths)]
     subtasks = [episodes.subtask_id[i, :n] for i, n in enumerate(episodes.lengths)]
     labelled = all(parse.labels is not None for parse in parses)

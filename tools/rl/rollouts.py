@@ -65,7 +65,8 @@ class RolloutWorld:
 
 
 def policy_inputs(obs: np.ndarray, tasks: Sequence[str], preprocessor: Processor) -> dict[str, Any]:
-    """The env's states as float32, with one task string per env, through the preprocessor."""
+    """The env's states as float32, with one task string per env, through the preprocessor. The batch
+    worlds give `observation.state` alone; a policy that reads more features cannot act in them."""
     return preprocessor({OBS_STATE: torch.from_numpy(obs).float(), "task": list(tasks)})
 
 
@@ -157,7 +158,7 @@ def option_subtask_success(
     stopped = np.zeros(len(rows), dtype=bool)
     option_h, step = None, 0
     while not (batch.done | stopped).all():
-        state = policy_inputs(obs, named, preprocessor)[OBS_STATE]
+        state = policy.observation(policy_inputs(obs, named, preprocessor))
         restart = torch.full((len(rows),), step == 0 if length is None else step % length == 0)
         action, option_h, end = policy.act_with_options(state, option, option_h, restart, greedy)
         if length is None and step > 0:
@@ -220,7 +221,7 @@ def oracle_controller_success(
     length, step = policy.config.fixed_skill_length, 0
     progress = batch.progress.copy()
     while not batch.done.all():
-        state = policy_inputs(obs, named, preprocessor)[OBS_STATE]
+        state = policy.observation(policy_inputs(obs, named, preprocessor))
         if option_h is not None and switch == "progress":
             decide = torch.from_numpy(batch.progress != progress) | (length is not None and step % length == 0)
         elif option_h is not None:

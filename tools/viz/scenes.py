@@ -3,7 +3,7 @@
 A `Scene` logs its static styles once, then each episode's per-step columns on the `frame`
 timeline, and names the views the blueprint places them in (`view` on the left, `plots` under the
 segmentation on the right). The lanes, p^c, e_t and summaries are the same for every world and
-live in `tools/ocn_view.py`. Entity paths:
+live in `tools/cli/ocn_view.py`. Entity paths:
 
     Craft
     scene                Image      the grid, drawn from the recorded state by lerobot_policy_ocn.envs.craft.render
@@ -15,6 +15,9 @@ live in `tools/ocn_view.py`. Entity paths:
     joints               Scalars    the 9 joint angles (rad), one series per joint
     key_distance         Scalars    L1 distance (m) of the fingertip to each key's press point
     action               Scalars    the 9 recorded motor controls, one series per motor
+
+    BabyAI, and any dataset of a world the tools do not know (`PlainScene`: no scene to draw)
+    action               Scalars    the recorded action, one series per dimension
 """
 
 from __future__ import annotations
@@ -110,7 +113,8 @@ class DialScene:
     def log_steps(self, rec: rr.RecordingStream, episode: Episode, indexes: list[rr.TimeColumn]) -> None:
         state = episode.state
         offsets = state[:, N_JOINTS:].reshape(len(state), len(self.keys), 3)
-        colours = subtask_colours(len(self.keys))[episode.subtask_id]
+        colours = subtask_colours(len(self.keys))[episode.subtask_id] if episode.subtask_id is not None \
+            else np.tile(KEY_COLOUR, (len(state), 1))
         rec.send_columns("scene/fingertip", indexes=indexes, columns=rr.Points3D.columns(
             positions=self.fingertip(state), colors=colours, radii=np.full(len(state), FINGERTIP_RADIUS)))
         rec.send_columns("joints", indexes=indexes, columns=rr.Scalars.columns(scalars=state[:, :N_JOINTS]))
@@ -128,3 +132,19 @@ class DialScene:
             rrb.TimeSeriesView(origin="action", name="motor controls",
                                axis_y=rrb.ScalarAxis(range=(-1.05, 1.05))),
         ]
+
+
+class PlainScene:
+    """A world without a drawn scene: the recorded action only, beside the option lanes."""
+
+    def log_styles(self, rec: rr.RecordingStream) -> None:
+        rec.log("action", rr.SeriesPoints(names="action", marker_sizes=3), static=True)
+
+    def log_steps(self, rec: rr.RecordingStream, episode: Episode, indexes: list[rr.TimeColumn]) -> None:
+        rec.send_columns("action", indexes=indexes, columns=rr.Scalars.columns(scalars=episode.action))
+
+    def view(self) -> rrb.View:
+        return rrb.TimeSeriesView(origin="action", name="action")
+
+    def plots(self) -> list[rrb.View]:
+        return []

@@ -3,7 +3,8 @@
 One column per episode. The top panel has two bars of coloured segments: the ground-truth
 subtasks (upper bar) and the chosen option argmax p^c (lower bar); below it the controller's option
 distribution p^c over time and the termination probability e_t, with the steps where the chosen
-option switches marked. Without a model only the subtask bar is drawn. The colours are shared
+option switches marked. Without a model only the subtask bar is drawn; without ground truth, only
+the option bar. The colours are shared
 with `ocn-view`'s rerun recording, so a subtask or an option looks the same in both.
 """
 
@@ -52,11 +53,12 @@ def subtask_colours(n_subtasks: int) -> np.ndarray:
 @dataclass
 class EpisodeView:
     """What the PNG draws of one episode: subtask_index [T] (which position in the task, so
-    repeated subtasks stay apart) and subtask_id [T] (which subtask), and the parse if any."""
+    repeated subtasks stay apart) and subtask_id [T] (which subtask), None without ground truth, and
+    the parse if any (one of the two at least)."""
 
     title: str
-    subtask_index: np.ndarray
-    subtask_id: np.ndarray
+    subtask_index: np.ndarray | None
+    subtask_id: np.ndarray | None
     parse: EpisodeParse | None
 
 
@@ -77,22 +79,24 @@ def _draw_bar(ax, starts: np.ndarray, labels: np.ndarray, length: int, y: float,
 def _draw_episode(axes: Sequence, episode: EpisodeView, codes: Sequence[str]) -> None:
     """The column of one episode: bars (subtasks named by their `codes`), then p^c and e_t when
     there is a parse."""
-    length = episode.subtask_id.size
     bars = axes[0]
-    _draw_bar(bars, segment_starts(episode.subtask_index), episode.subtask_id, length, 1.1, SUBTASK_COLOURS,
-              codes)
     bars.set_title(episode.title, fontsize=8)
-    bars.set_yticks([1.5], ["subtask"])
+    labelled = episode.subtask_id is not None
+    if labelled:
+        _draw_bar(bars, segment_starts(episode.subtask_index), episode.subtask_id, episode.subtask_id.size, 1.1,
+                  SUBTASK_COLOURS, codes)
+        bars.set_yticks([1.5], ["subtask"])
     if episode.parse is None:
         bars.set_ylim(1.0, 2.0)
         bars.set_xlabel("step")
         return
-    bars.set_ylim(0.0, 2.0)
     parse = episode.parse
+    length = parse.option.size
+    bars.set_ylim(0.0, 2.0 if labelled else 1.0)
     colours = option_colours(parse.p_c.shape[1])
     _draw_bar(bars, np.append(0, parse.switches), parse.option, length, 0.1, colours,
               [f"o{k}" for k in range(parse.p_c.shape[1])])
-    bars.set_yticks([0.5, 1.5], ["option", "subtask"])
+    bars.set_yticks([0.5, 1.5] if labelled else [0.5], ["option", "subtask"] if labelled else ["option"])
     steps = np.arange(length)
     for k in range(parse.p_c.shape[1]):
         axes[1].plot(steps, parse.p_c[:, k], color=_rgb(colours[k]), lw=1.5)
@@ -115,7 +119,8 @@ def _legend_handles(episodes: Sequence[EpisodeView], labels: Sequence[str]) -> l
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    used = sorted({int(s) for episode in episodes for s in np.unique(episode.subtask_id)})
+    used = sorted({int(s) for episode in episodes if episode.subtask_id is not None
+                   for s in np.unique(episode.subtask_id)})
     handles = [Patch(color=_rgb(SUBTASK_COLOURS[s]), label=labels[s]) for s in used]
     parse = episodes[0].parse
     if parse is not None:
