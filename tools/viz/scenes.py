@@ -3,7 +3,7 @@
 A `Scene` logs its static styles once, then each episode's per-step columns on the `frame`
 timeline, and names the views the blueprint places them in (`view` on the left, `plots` under the
 segmentation on the right). The lanes, p^c, e_t and summaries are the same for every world and
-live in `tools/cli/ocn_view.py`. Entity paths:
+live in `tools/viz/rerun_log.py`. Entity paths:
 
     Craft
     scene                Image      the grid, drawn from the recorded state by lerobot_policy_ocn.envs.craft.render
@@ -35,7 +35,7 @@ from lerobot_policy_ocn.envs.dial.scene import JOINTS, KEY_HALF_SIZE, N_JOINTS, 
 from lerobot_policy_ocn.tools.viz.segmentation_plot import subtask_colours
 
 if TYPE_CHECKING:
-    from lerobot_policy_ocn.tools.cli.ocn_view import Episode
+    from lerobot_policy_ocn.tools.viz.episode import Episode
 
 
 class Scene(Protocol):
