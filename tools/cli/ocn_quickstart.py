@@ -6,11 +6,11 @@ default recipe), `ocn-eval` (parsing scores against the subtasks, the option x s
 success) and `ocn-view` (a rerun file and a PNG of the options over validation episodes). Then it
 prints the option x subtask table: each option, run alone, on each subtask.
 
-Its budget is the smallest measured to induce the three skills: 2,000 demonstrations per task and
-2,000 steps of 128 episodes split them on seeds 1 and 3 (NMI 0.989 and 0.990) but not on seed 2
-(0.516); 1,200 steps split none of the three; 3,000 steps split all three, at half again the time
-(`ocn-bench skills`, results/bench_skills.md). Seed 1 is the default. Its wall time on 2 cores is
-results/bench_quickstart.md; the paper-size run is `ocn-reproduce imitation-s1`.
+Its budget is the smallest measured to induce the three skills (results/bench_skills.md, `ocn-bench
+skills`): 2,000 demonstrations per task and 2,000 steps of 128 episodes split them on seeds 1 and 3
+(NMI 0.989 and 0.990) but not on seed 2 (0.516); 3,000 steps split all three (0.989-0.994) at 1.4x
+the time. Seed 1 is the default. Its wall time on 2 cores is results/bench_quickstart.md; the
+paper-size run is `ocn-reproduce imitation-s1`.
 """
 
 from __future__ import annotations

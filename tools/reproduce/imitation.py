@@ -18,7 +18,8 @@ Each model is scored by `ocn-eval` on the validation split: F1 at tolerance 0 an
 and NMI of its parse, free-run success per task and the option x subtask success table, 200 env
 episodes per task and per cell. The checks: on every seed of the main variant NMI >= 0.95 and F1@1
 >= 0.95 (the issue's bars; the lowest seed is the measured value); the paper's ordering, 2 options'
-NMI clearly (0.1) below 3's and T = 1's below T = 10's; and 6 options' NMI against 0.9, reported
+NMI clearly (0.1) below 3's and T = 1's clearly (0.1) below T = 10's (a margin, so that seed
+noise cannot pass for the ordering); and 6 options' NMI against 0.9, reported
 whether or not it holds: before the recipe became the default it did not (0.585, the spare options
 share subtasks). Writes `results/imitation_s1.{json,md,png}`: the figure shows every metric per
 variant with the seeds as dots, and the option x subtask table of the main variant's first seed.
@@ -87,7 +88,7 @@ def checks(summary: dict[str, Any]) -> list[dict[str, Any]]:
         *(check(f"3 options, T=10: {label} >= 0.95 on every seed", None if main is None else main[metric]["min"],
                 lambda v: v >= 0.95) for label, metric in (("NMI", "nmi"), ("F1@1", "f1_tol1"))),
         check("2 options, T=10: NMI clearly (0.1) below 3 options'", nmi("options2"), lambda v: v <= ours - 0.1),
-        check("3 options, T=1: NMI below T=10's", nmi("T1"), lambda v: v < ours),
+        check("3 options, T=1: NMI clearly (0.1) below T=10's", nmi("T1"), lambda v: v <= ours - 0.1),
         check("6 options, T=10: NMI >= 0.9", summary["options6"]["nmi"]["mean"] if "options6" in summary else None,
               lambda v: v >= 0.9),
     ]
