@@ -57,7 +57,8 @@ def rates_cell(rates: dict[str, float]) -> str:
 
 
 def seconds_cell(wall_s: float | None) -> str:
-    """A command's wall seconds for a table cell ("not timed": it ran before timings were kept)."""
+    """A command's wall seconds for a table cell ("not timed": it ran before timings were kept, or its
+    start was lost to an interruption)."""
     return "not timed" if wall_s is None else f"{wall_s:.0f}"
 
 

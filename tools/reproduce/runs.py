@@ -129,9 +129,12 @@ class Job:
 
     @property
     def wall_s(self) -> float | None:
-        """The command's wall seconds over every invocation (None if none was timed)."""
+        """The command's wall seconds over every invocation (None if none was timed, or if the first timed
+        one resumed a run whose start went untimed, as when the machine stopped under it)."""
         timing = self.timing()
-        return round(sum(entry["wall_s"] for entry in timing), 1) if timing else None
+        if not timing or timing[0]["resumed"]:
+            return None
+        return round(sum(entry["wall_s"] for entry in timing), 1)
 
 
 class Recording(Job):
