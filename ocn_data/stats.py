@@ -1,18 +1,19 @@
 """Per-episode and whole-chunk feature statistics, by LeRobot's own definitions, vectorised.
 
-LeRobot's `save_episode()` reduces each episode through `RunningQuantileStats`: min/max/mean/std,
-and quantiles read off a 5,000-bin histogram spanning the episode's range, interpolated within the
-bin. A dataset's statistics are `aggregate_stats` of its episodes': min/max/mean/std pooled exactly,
-each quantile the frame-count-weighted mean of the episodes' quantiles. Recording one episode at a
-time that way costs a large part of a second per short episode, so here all episodes of a chunk are
-reduced at once. The histogram never has to be built: an episode of L frames fills at most L bins,
-so sorting the frames' bin numbers gives the cumulative counts the quantile search needs. The
+LeRobot's `save_episode()` reduces each episode through `RunningQuantileStats`: min/max/mean/std, and
+quantiles read off a 5,000-bin histogram spanning the episode's range, interpolated within the bin. A
+dataset's statistics are `aggregate_stats` of its episodes' (`pooled_stats` calls it): min/max/mean/std
+pooled exactly, each quantile the frame-count-weighted mean of the episodes' quantiles. Recording one
+episode at a time that way costs a large part of a second per short episode, so here all episodes of a
+chunk are reduced at once. The histogram never has to be built: an episode of L frames fills at most L
+bins, so sorting the frames' bin numbers gives the cumulative counts the quantile search needs. The
 result has LeRobot's keys, shapes and values (`min, max, mean, std, count, q01, q10, q50, q90, q99`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from lerobot.datasets.compute_stats import aggregate_feature_stats
 
 QUANTILES: tuple[float, ...] = (0.01, 0.10, 0.50, 0.90, 0.99)
 QUANTILE_KEYS: tuple[str, ...] = tuple(f"q{int(q * 100):02d}" for q in QUANTILES)
@@ -85,20 +86,7 @@ def episode_stats(values: np.ndarray, lengths: np.ndarray) -> dict[str, np.ndarr
 
 
 def pooled_stats(per_episode: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The statistics of a set of episodes, from `episode_stats`' output, as `aggregate_stats` pools
-    them: exact min/max/mean/std, count-weighted mean quantiles."""
-    counts = per_episode["count"].reshape(len(per_episode["count"]), -1)[:, :1].astype(np.float64)
-    total = counts.sum()
-    weights = counts.reshape((-1,) + (1,) * (per_episode["mean"].ndim - 1)) / total
-    mean = (per_episode["mean"] * weights).sum(axis=0)
-    variance = ((per_episode["std"] ** 2 + (per_episode["mean"] - mean) ** 2) * weights).sum(axis=0)
-    out = {
-        "min": per_episode["min"].min(axis=0),
-        "max": per_episode["max"].max(axis=0),
-        "mean": mean,
-        "std": np.sqrt(variance),
-        "count": np.array([int(total)]),
-    }
-    for key in QUANTILE_KEYS:
-        out[key] = (per_episode[key] * weights).sum(axis=0)
-    return out
+    """The statistics of a set of episodes, from `episode_stats`' output, pooled by LeRobot's own
+    `aggregate_feature_stats` (exact min/max/mean/std, count-weighted mean quantiles)."""
+    episodes = [{key: value[e] for key, value in per_episode.items()} for e in range(len(per_episode["count"]))]
+    return aggregate_feature_stats(episodes)
