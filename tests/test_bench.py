@@ -187,3 +187,22 @@ def test_quickstart_measures_a_command_in_an_empty_folder_against_the_goals(craf
     assert measured["met"]["nmi"] == (measured["nmi"] >= 0.9)
     result = {**_provenance("ocn-bench quickstart"), **measured}
     assert f"| NMI (`outputs/quickstart/eval.json`) | **{measured['nmi']:.3f}** | >= 0.9" in quickstart.markdown(result)
+
+
+def test_a_run_that_never_exits_after_its_end_line_is_stopped_and_says_so(monkeypatch):
+    """The guard against LeRobot's closing `destroy_process_group` hanging (common.run_timed): a command
+    alive past the grace after its end line is stopped, its wall time ends at that line and its output
+    says so; a command that fails still raises, and one that exits is left alone."""
+    from lerobot_policy_ocn.tools.bench import common
+
+    monkeypatch.setattr(common, "TEARDOWN_GRACE_S", 1.0)
+    hangs = [sys.executable, "-c",
+             "import time; print('step 1'); print('End of training', flush=True); time.sleep(300)"]
+    wall, output = common.run_timed(hangs, ends_at="End of training")
+    assert wall < 1.0 and output.startswith("step 1\nEnd of training\n")
+    assert output.splitlines()[-1].startswith(common.TEARDOWN_STOPPED)
+    wall, output = common.run_timed([sys.executable, "-c", "print('End of training')"], ends_at="End of training")
+    assert common.TEARDOWN_STOPPED not in output
+    with pytest.raises(RuntimeError, match="exited with 3"):
+        common.run_timed([sys.executable, "-c", "import sys; print('End of training'); sys.exit(3)"],
+                         ends_at="End of training")

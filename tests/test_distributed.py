@@ -29,6 +29,8 @@ from torch import Tensor, nn
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 
+from lerobot_policy_ocn.tools.bench.common import run_timed
+
 TASKS = ["task a", "task b"]
 STATE_DIM = 5
 LENGTHS = [6, 3, 5, 2, 4]  # episode lengths of the batch; the shards below hold 3 and 2 of them
@@ -227,9 +229,7 @@ def _train(root: Path, out: Path, processes: int, steps: int, global_batch: int)
              "--env_eval_freq=0", "--num_workers=0", "--log_freq=1"]
     launch = [str(bin_dir / "torchrun"), "--standalone", f"--nproc_per_node={processes}"] if processes > 1 else []
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([*launch, *train], capture_output=True, text=True, timeout=300, cwd=out.parent, env=env)
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    return proc.stdout + proc.stderr
+    return run_timed([*launch, *train], cwd=out.parent, env=env, ends_at="End of training")[1]
 
 
 def _logged(log: str, key: str) -> list[float]:

@@ -12,8 +12,10 @@ import json
 import os
 import platform
 import shlex
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -87,17 +89,66 @@ def best_rate(call: Callable[[], None], calls: int, items_per_call: int, repeats
     return calls * items_per_call / best
 
 
+# LeRobot's training script ends with `accelerator.end_training()`, whose `destroy_process_group()` can
+# leave a rank waiting forever once its peer has exited (pytorch/pytorch#75097). It happened here once, in
+# a full test run: rank 0 sat idle in a futex wait for 18 minutes after logging the end of training, its
+# checkpoint written and its peer gone. 42 runs of the same command afterwards (alone, two at once, beside
+# two busy loops) all exited.
+TEARDOWN_GRACE_S = 120.0
+TEARDOWN_STOPPED = "ocn-bench: stopped the run's processes"
+
+
 def run_timed(command: Sequence[str], cwd: Path | None = None, env: dict[str, str] | None = None,
-              ) -> tuple[float, str]:
-    """Wall seconds of a subprocess from start to exit, and its stdout and stderr together; a failure
-    raises with the output's tail."""
+              ends_at: str | None = None) -> tuple[float, str]:
+    """Wall seconds of a subprocess from start to exit, and its output (stdout and stderr as they came); a
+    failure raises with the output's tail. The command runs in a session of its own, so that whatever it
+    starts (torchrun's ranks) goes with it. With `ends_at`, a line of its log that marks the work as done,
+    a run still alive TEARDOWN_GRACE_S after that line is stopped: its wall time ends at the line, and its
+    output ends with a line that starts with TEARDOWN_STOPPED, for the caller to report."""
     start = time.perf_counter()
-    proc = subprocess.run(list(command), cwd=cwd, env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - start
-    output = proc.stdout + proc.stderr
-    if proc.returncode != 0:
+    lines: list[str] = []
+    done_at: list[float] = []
+    with subprocess.Popen(list(command), cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          text=True, start_new_session=True) as proc:
+        def read() -> None:
+            try:
+                for line in proc.stdout:
+                    lines.append(line)
+                    if ends_at is not None and not done_at and ends_at in line:
+                        done_at.append(time.perf_counter())
+            except (OSError, ValueError):  # the pipe closed under a stopped run
+                return
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        stopped = False
+        while proc.poll() is None:
+            if done_at and time.perf_counter() - done_at[0] > TEARDOWN_GRACE_S:
+                stop(proc)
+                stopped = True
+                break
+            time.sleep(0.2)
+        wall = (done_at[0] if stopped else time.perf_counter()) - start
+        if stopped:
+            reader.join(timeout=5.0)
+            lines.append(f"{TEARDOWN_STOPPED} {TEARDOWN_GRACE_S:.0f} s after {ends_at!r}: they had not exited\n")
+        else:
+            reader.join()
+    output = "".join(lines)
+    if proc.returncode != 0 and not stopped:
         raise RuntimeError(f"{shlex.join(command)} exited with {proc.returncode}:\n{output[-4000:]}")
     return wall, output
+
+
+def stop(proc: subprocess.Popen) -> None:
+    """SIGTERM, which torchrun passes on to its ranks (each in a session of its own), then SIGKILL to the
+    command's session if it is still there a minute later."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
 
 
 def typed(command: Sequence[str]) -> str:

@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from lerobot_policy_ocn.tools import console_script
-from lerobot_policy_ocn.tools.bench.common import add_common_arguments, header, int_list, run_timed, typed
+from lerobot_policy_ocn.tools.bench.common import (TEARDOWN_GRACE_S, TEARDOWN_STOPPED, add_common_arguments, header,
+                                                  int_list, run_timed, typed)
 
 REPO_ID = "local/s1"
 S1_TASKS = "AC,CD,DA"
@@ -117,7 +118,7 @@ def train_run(processes: int, args: argparse.Namespace, workdir: Path) -> dict[s
     out = workdir / f"processes_{processes}"
     command = train_command(processes, args, out)
     env = {**os.environ, "OMP_NUM_THREADS": str(args.threads), "MKL_NUM_THREADS": str(args.threads)}
-    wall, log = run_timed(command, env=env)
+    wall, log = run_timed(command, env=env, ends_at="End of training")
     rows = logged_steps(log)[1:]
     if not rows:
         raise RuntimeError(f"lerobot-train logged no step timings:\n{log[-4000:]}")
@@ -134,6 +135,7 @@ def train_run(processes: int, args: argparse.Namespace, workdir: Path) -> dict[s
         "command": typed(command).replace(str(out), "O").replace(str(args.root), "R"),
         "effective_batch_logged": re.search(r"Effective batch size: [^\n]*", log).group(0),
         "wall_s": wall,
+        "teardown_stopped": TEARDOWN_STOPPED in log,
         "update_s": update,
         "data_wait_s": data,
         "step_s": update + data,
@@ -291,9 +293,18 @@ def markdown(r: dict[str, Any]) -> str:
         "time (update + data wait, the slowest process's), the first logged interval left out. Wall: the whole "
         "command, start-up, dataset loading and checkpoint included. NMI and F1@1: `ocn-eval` on the validation "
         "split, the same number of samples behind each.\n"
+        + _teardown_note(runs)
         + bounds
         + _gpu_plan(r)
     )
+
+
+def _teardown_note(runs: list[dict[str, Any]]) -> str:
+    """A line for each run whose processes were stopped after the end of their training (common.run_timed)."""
+    stopped = [str(run["processes"]) for run in runs if run["teardown_stopped"]]
+    return "".join(f"\n**The {n}-process run did not exit**: its processes were still alive {TEARDOWN_GRACE_S:.0f} s "
+                   "after `End of training` (LeRobot's closing `destroy_process_group`) and were stopped; its wall "
+                   "time ends at that line and its checkpoint was already written.\n" for n in stopped)
 
 
 def _gpu_plan(r: dict[str, Any]) -> str:
