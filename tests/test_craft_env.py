@@ -409,6 +409,28 @@ def test_vector_env_partial_reset_mask():
     np.testing.assert_array_equal(second[1], CraftEnv("AC").reset(seed=42)[0])
 
 
+def test_render_shows_the_inventory_on_the_border():
+    """Each carried kind lights its own border tile in its colour; an empty inventory leaves the border
+    plain boundary, and the interior is the same either way."""
+    from lerobot_policy_ocn.envs.craft.render import INVENTORY_SLOTS, KIND_TILES
+    from lerobot_policy_ocn.envs.craft.world import BOUNDARY
+
+    env = CraftEnv("AC", render_mode="rgb_array")
+    env.reset(seed=0)
+    env.batch.inventory[0] = 0
+    plain = env.render()
+    np.testing.assert_array_equal(plain[:16], np.concatenate([KIND_TILES[BOUNDARY]] * 10, axis=1))
+    for kind in (7, 8, 20):
+        env.batch.inventory[0] = 0
+        env.batch.inventory[0, kind] = 2
+        frame = env.render()
+        row, col = INVENTORY_SLOTS[kind - 7]
+        np.testing.assert_array_equal(frame[row * 16:(row + 1) * 16, col * 16:(col + 1) * 16], KIND_TILES[kind])
+        assert (frame != plain).any(axis=-1).sum() == 16 * 16
+    assert len({tuple(slot) for slot in INVENTORY_SLOTS}) == 14 and all(
+        row in (0, 9) and 0 < col < 9 for row, col in INVENTORY_SLOTS)
+
+
 def test_render_shape_and_facing_marker():
     env = CraftEnv("AC", render_mode="rgb_array")
     env.reset(seed=0)

@@ -16,7 +16,7 @@ from gymnasium.vector import AutoresetMode
 
 from lerobot_policy_ocn.envs.batch_vector import BatchVectorEnv
 from lerobot_policy_ocn.envs.craft.batch import CraftBatch
-from lerobot_policy_ocn.envs.craft.observation import OBS_DIM, OBS_HIGH
+from lerobot_policy_ocn.envs.craft.observation import INVENTORY_FIRST_KIND, OBS_DIM, OBS_HIGH
 from lerobot_policy_ocn.envs.craft.render import render_batch
 from lerobot_policy_ocn.envs.craft.world import N_ACTIONS, parse_task, task_code, task_description
 
@@ -89,7 +89,7 @@ class CraftEnv(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         b = self.batch
-        return render_batch(b.grid, b.pos, b.facing)[0]
+        return render_batch(b.grid, b.pos, b.facing, b.inventory[:, INVENTORY_FIRST_KIND:])[0]
 
 
 class CraftVectorEnv(BatchVectorEnv):
@@ -126,4 +126,4 @@ class CraftVectorEnv(BatchVectorEnv):
         if self.render_mode != "rgb_array":
             return None
         b = self.batch
-        return tuple(render_batch(b.grid, b.pos, b.facing))
+        return tuple(render_batch(b.grid, b.pos, b.facing, b.inventory[:, INVENTORY_FIRST_KIND:]))

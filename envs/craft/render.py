@@ -1,15 +1,20 @@
 """RGB pictures of Craft states for videos and debugging.
 
 Each cell is a 16x16 tile filled with its kind's palette colour (darker tile edges make the grid
-readable); the agent is a red disc with a dark bar pointing the way it faces. A whole batch of
-images is one lookup into prebuilt uint8 tiles plus one transpose, with no per-pixel Python.
+readable); the agent is a red disc with a dark bar pointing the way it faces. The border, always
+boundary, shows the inventory: each carried kind (7 .. 20) has a border tile of its own, drawn in the
+kind's colour while the agent holds at least one (top row, columns 1-8: kinds 7-14; bottom row,
+columns 1-6: kinds 15-20). Without it a frame would not show what has been collected, which the
+compact state holds and which tells one subtask from the next. A whole batch of images is one lookup
+into prebuilt uint8 tiles plus one transpose, with no per-pixel Python.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from lerobot_policy_ocn.envs.craft.world import EMPTY, GRID_SIZE
+from lerobot_policy_ocn.envs.craft.observation import INVENTORY_FIRST_KIND
+from lerobot_policy_ocn.envs.craft.world import EMPTY, GRID_SIZE, N_KINDS
 
 TILE = 16
 
@@ -71,14 +76,22 @@ def _agent_sprites() -> np.ndarray:
 AGENT_SPRITES = _agent_sprites()
 
 
-def render_batch(grid: np.ndarray, pos: np.ndarray, facing: np.ndarray) -> np.ndarray:
-    """Images (n, 160, 160, 3) uint8 of n states given as grid (n, 10, 10), pos (n, 2), facing (n,)."""
+# The border tile (row, col) of each carried kind, INVENTORY_FIRST_KIND onwards.
+_SLOTS = [(0, col) for col in range(1, GRID_SIZE - 1)] + [(GRID_SIZE - 1, col) for col in range(1, GRID_SIZE - 1)]
+INVENTORY_SLOTS = np.array(_SLOTS[: N_KINDS - INVENTORY_FIRST_KIND])
+
+
+def render_batch(grid: np.ndarray, pos: np.ndarray, facing: np.ndarray, inventory: np.ndarray) -> np.ndarray:
+    """Images (n, 160, 160, 3) uint8 of n states given as grid (n, 10, 10), pos (n, 2), facing (n,) and the
+    inventory counts (n, 14) of kinds 7 .. 20."""
     n = grid.shape[0]
     tiles = KIND_TILES[grid]
     tiles[np.arange(n), pos[:, 0], pos[:, 1]] = AGENT_SPRITES[facing]
+    state, kind = np.nonzero(inventory > 0)
+    tiles[state, INVENTORY_SLOTS[kind, 0], INVENTORY_SLOTS[kind, 1]] = KIND_TILES[INVENTORY_FIRST_KIND + kind]
     return tiles.transpose(0, 1, 3, 2, 4, 5).reshape(n, GRID_SIZE * TILE, GRID_SIZE * TILE, 3)
 
 
-def render_state(grid: np.ndarray, pos: np.ndarray, facing: int) -> np.ndarray:
+def render_state(grid: np.ndarray, pos: np.ndarray, facing: int, inventory: np.ndarray) -> np.ndarray:
     """Image (160, 160, 3) uint8 of one state."""
-    return render_batch(grid[None], np.asarray(pos)[None], np.asarray([facing]))[0]
+    return render_batch(grid[None], np.asarray(pos)[None], np.asarray([facing]), np.asarray(inventory)[None])[0]

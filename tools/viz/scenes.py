@@ -28,7 +28,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from lerobot_policy_ocn.envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING
+from lerobot_policy_ocn.envs.craft.observation import AGENT_COL, AGENT_ROW, CELLS, FACING, INVENTORY
 from lerobot_policy_ocn.envs.craft.render import TILE, render_batch
 from lerobot_policy_ocn.envs.craft.world import ACTION_NAMES, BOUNDARY, GRID_SIZE, INTERIOR_SIZE
 from lerobot_policy_ocn.envs.dial.scene import JOINTS, KEY_HALF_SIZE, N_JOINTS, key_positions
@@ -79,12 +79,12 @@ class CraftScene:
 
 def craft_scene_images(states: np.ndarray) -> np.ndarray:
     """Frames [T, 160, 160, 3] uint8 of compact Craft states [T, 81], drawn by the env's own
-    renderer: the state keeps only the grid's interior (the border is always boundary) and the
-    agent's interior coordinates, so both are put back first."""
+    renderer (the inventory on the border): the state keeps only the grid's interior (the border is
+    always boundary) and the agent's interior coordinates, so both are put back first."""
     n = len(states)
     grid = np.full((n, GRID_SIZE, GRID_SIZE), BOUNDARY, dtype=np.int64)
     grid[:, 1:-1, 1:-1] = states[:, CELLS].reshape(n, INTERIOR_SIZE, INTERIOR_SIZE)
-    return render_batch(grid, states[:, [AGENT_ROW, AGENT_COL]] + 1, states[:, FACING])
+    return render_batch(grid, states[:, [AGENT_ROW, AGENT_COL]] + 1, states[:, FACING], states[:, INVENTORY])
 
 
 KEY_COLOUR = (200, 200, 190)
