@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from lerobot_policy_ocn.envs.craft import N_ACTIONS, CraftBatch, CraftExpert
-from lerobot_policy_ocn.envs.craft.observation import INVENTORY_FIRST_KIND, OBS_DIM, OBS_NAMES
-from lerobot_policy_ocn.envs.craft.render import render_batch
+from lerobot_policy_ocn.envs.craft.observation import OBS_DIM, OBS_NAMES
+from lerobot_policy_ocn.envs.craft.render import render_live
 from lerobot_policy_ocn.envs.craft.world import SUBTASK_NAMES, default_max_steps, task_description
 from lerobot_policy_ocn.ocn_data.recorder import IMAGE_KEY, LABEL_FEATURES, ExpertRecorder
 
@@ -97,5 +97,4 @@ class CraftRecorder(ExpertRecorder):
         return task_description(task)
 
     def _render(self) -> np.ndarray:
-        b = self.batch
-        return render_batch(b.grid, b.pos, b.facing, b.inventory[:, INVENTORY_FIRST_KIND:])
+        return render_live(self.batch)

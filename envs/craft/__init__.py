@@ -4,7 +4,7 @@ from lerobot_policy_ocn.envs.craft.batch import CraftBatch
 from lerobot_policy_ocn.envs.craft.env import CraftEnv, CraftVectorEnv, craft_observation_space
 from lerobot_policy_ocn.envs.craft.expert import CraftExpert
 from lerobot_policy_ocn.envs.craft.observation import OBS_DIM, OBS_NAMES, OMPN_DIM, ompn_features
-from lerobot_policy_ocn.envs.craft.render import render_batch, render_state
+from lerobot_policy_ocn.envs.craft.render import render_batch, render_live, render_state
 from lerobot_policy_ocn.envs.craft.world import (
     ACTION_NAMES,
     KIND_NAMES,
@@ -39,6 +39,7 @@ __all__ = [
     "ompn_features",
     "parse_task",
     "render_batch",
+    "render_live",
     "render_state",
     "task_code",
     "task_description",

@@ -16,8 +16,8 @@ from gymnasium.vector import AutoresetMode
 
 from lerobot_policy_ocn.envs.batch_vector import BatchVectorEnv
 from lerobot_policy_ocn.envs.craft.batch import CraftBatch
-from lerobot_policy_ocn.envs.craft.observation import INVENTORY_FIRST_KIND, OBS_DIM, OBS_HIGH
-from lerobot_policy_ocn.envs.craft.render import render_batch
+from lerobot_policy_ocn.envs.craft.observation import OBS_DIM, OBS_HIGH
+from lerobot_policy_ocn.envs.craft.render import render_live
 from lerobot_policy_ocn.envs.craft.world import N_ACTIONS, parse_task, task_code, task_description
 
 RENDER_FPS = 8
@@ -88,8 +88,7 @@ class CraftEnv(gym.Env):
         """HxWx3 uint8 frame when render_mode is "rgb_array"."""
         if self.render_mode != "rgb_array":
             return None
-        b = self.batch
-        return render_batch(b.grid, b.pos, b.facing, b.inventory[:, INVENTORY_FIRST_KIND:])[0]
+        return render_live(self.batch)[0]
 
 
 class CraftVectorEnv(BatchVectorEnv):
@@ -125,5 +124,4 @@ class CraftVectorEnv(BatchVectorEnv):
         """One HxWx3 uint8 frame per env when render_mode is "rgb_array"."""
         if self.render_mode != "rgb_array":
             return None
-        b = self.batch
-        return tuple(render_batch(b.grid, b.pos, b.facing, b.inventory[:, INVENTORY_FIRST_KIND:]))
+        return tuple(render_live(self.batch))

@@ -11,10 +11,15 @@ into prebuilt uint8 tiles plus one transpose, with no per-pixel Python.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from lerobot_policy_ocn.envs.craft.observation import INVENTORY_FIRST_KIND
 from lerobot_policy_ocn.envs.craft.world import EMPTY, GRID_SIZE, N_KINDS
+
+if TYPE_CHECKING:
+    from lerobot_policy_ocn.envs.craft.batch import CraftBatch
 
 TILE = 16
 
@@ -95,3 +100,8 @@ def render_batch(grid: np.ndarray, pos: np.ndarray, facing: np.ndarray, inventor
 def render_state(grid: np.ndarray, pos: np.ndarray, facing: int, inventory: np.ndarray) -> np.ndarray:
     """Image (160, 160, 3) uint8 of one state."""
     return render_batch(grid[None], np.asarray(pos)[None], np.asarray([facing]), np.asarray(inventory)[None])[0]
+
+
+def render_live(batch: CraftBatch) -> np.ndarray:
+    """Images (n, 160, 160, 3) uint8 of every env of a live batch: its grids, agents and inventories."""
+    return render_batch(batch.grid, batch.pos, batch.facing, batch.inventory[:, INVENTORY_FIRST_KIND:])
