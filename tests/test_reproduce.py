@@ -104,15 +104,24 @@ def test_a_folder_made_by_another_command_is_refused(study):
         main(changed(study["argv"], "--episodes-per-task", "21"))
 
 
-def test_s1_finetunes_over_the_imitation_clone_with_plain_commands(study, tmp_path):
+@pytest.fixture(scope="module")
+def finetuned(study: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """`ocn-reproduce s1` over the study's clone (OCN and OMPN, dense reward, 600 frames), run once for
+    whichever test of this module asks first on its worker (pytest-xdist may give the tests that read it
+    to different workers): its argv, its results folder and the clone's timings from before it ran."""
+    results = tmp_path_factory.mktemp("s1_results")
     argv = ["s1", *TINY, "--methods", "ocn,ompn", "--rewards", "dense", "--frames", "600", "--envs", "3",
-            "--workdir", str(study["workdir"]), "--results", str(tmp_path)]
-    study["s1"] = argv
+            "--workdir", str(study["workdir"]), "--results", str(results)]
     clone_timing = (study["workdir"] / CLONE / "timing.json").read_text()
     assert main(argv) == 0
+    return {"argv": argv, "results": results, "clone_timing": clone_timing}
+
+
+def test_s1_finetunes_over_the_imitation_clone_with_plain_commands(study, finetuned):
+    argv, tmp_path = finetuned["argv"], finetuned["results"]
     result = json.loads((tmp_path / "finetune_s1.json").read_text())
     assert result["command"] == shlex.join(["ocn-reproduce", *argv])
-    assert (study["workdir"] / CLONE / "timing.json").read_text() == clone_timing  # imitation-s1's clone, reused
+    assert (study["workdir"] / CLONE / "timing.json").read_text() == finetuned["clone_timing"]  # the clone, reused
     ocn, ompn = result["runs"]
     assert shlex.split(ocn["command"])[:2] == ["ocn-finetune", "--tasks"]
     assert f"{CLONE}/train/checkpoints/last/pretrained_model" in ocn["command"]
@@ -126,12 +135,12 @@ def test_s1_finetunes_over_the_imitation_clone_with_plain_commands(study, tmp_pa
         (tmp_path / "finetune_s1.md").read_text().index("## At the budget")
 
 
-def test_an_interrupted_finetuning_goes_on_with_resume(study, tmp_path):
+def test_an_interrupted_finetuning_goes_on_with_resume(study, finetuned):
     folder = next((study["workdir"] / "finetune" / "s1").glob("*/ocn_dense/seed1"))
     job = Finetuning(study["workdir"], str(folder.relative_to(study["workdir"])), [])
     (folder / "out" / "finetune.json").unlink()  # as if stopped after its last PPO iteration
     assert job.resumed()[-1] == "--resume"
-    assert main(study["s1"]) == 0
+    assert main(finetuned["argv"]) == 0
     assert job.finished() and [entry["resumed"] for entry in job.timing()] == [False, True]
 
 
