@@ -27,6 +27,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetad
 import lerobot_policy_ocn  # noqa: F401  (registers `ocn` as LeRobot's CLIs do)
 from lerobot_policy_ocn.episode_memory import fit_frames
 from lerobot_policy_ocn.ocn import OCNConfig
+from lerobot_policy_ocn.ocn.encoders import ConvEncoder, random_shift
 from lerobot_policy_ocn.tools.cli.ocn_annotate import main as ocn_annotate
 from lerobot_policy_ocn.tools.cli.ocn_eval import main as ocn_eval
 from lerobot_policy_ocn.tools.cli.ocn_view import main as ocn_view
@@ -183,6 +184,25 @@ def test_images_are_decoded_once_as_lerobot_decodes_them(stored, two_states_and_
         start = int(policy._episodes.start[int(item["episode_index"])])
         expected = fit_frames(item["observation.image"], 40)
         assert torch.equal(frames[start + int(item["frame_index"])], expected)
+
+
+def test_training_shifts_each_frame_and_evaluation_reads_it_as_it_is():
+    frames = torch.rand(64, 3, 12, 12) * 255
+    moved = random_shift(frames, 2)
+    padded = torch.nn.functional.pad(frames, (2, 2, 2, 2), mode="replicate")
+    offsets = set()
+    for frame, original in zip(moved, padded, strict=True):
+        matches = [(row, col) for row in range(5) for col in range(5)
+                   if torch.equal(original[:, row : row + 12, col : col + 12], frame)]
+        assert len(matches) == 1
+        offsets.add(matches[0])
+    assert len(offsets) > 10  # each frame draws its own offset
+
+    encoder = ConvEncoder(3, 40)
+    images = torch.rand(8, 3, 40, 40) * 255
+    assert not torch.equal(encoder(images), encoder(images))  # training: shifted at random
+    encoder.eval()
+    assert torch.equal(encoder(images), encoder(images))
 
 
 def test_features_can_be_dropped_and_bad_ones_are_named(two_states_and_video, state_only, tmp_path):
