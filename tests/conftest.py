@@ -14,7 +14,7 @@ import os
 import subprocess
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -96,6 +96,22 @@ def craft_rollout(policy: torch.nn.Module) -> dict:
     vec.close()
     assert out["action"].shape[0] == 2 and out["done"].any(1).all()
     return out
+
+
+@pytest.fixture(scope="session", autouse=True)
+def temporary_files_under_pytest(tmp_path_factory) -> Iterator[None]:
+    """Temporary files, the tests' and those of every process they start, go to this session's pytest
+    folder, which pytest prunes: LeRobot's `PreTrainedConfig.from_pretrained` leaves one JSON file in
+    the system's temporary folder at each call (about 1,600 a run of the suite)."""
+    folder = str(tmp_path_factory.mktemp("tempfiles"))
+    before = os.environ.get("TMPDIR")
+    os.environ["TMPDIR"], tempfile.tempdir = folder, folder
+    yield
+    tempfile.tempdir = None
+    if before is None:
+        os.environ.pop("TMPDIR")
+    else:
+        os.environ["TMPDIR"] = before
 
 
 @pytest.fixture(scope="session")
