@@ -13,17 +13,18 @@ defaults (Craft's recipe):
 - `images`: on the video recording with `--policy.drop_features=[observation.state]`: the frames alone,
   decoded once when the policy is built and shrunk to 40 x 40 (4 px a tile), through the small
   convolutional encoder;
-- `state_on_video`: the state model again on the video recording (`--policy.drop_features=
-  [observation.image]`), for `--throughput-steps` steps only (it is measured, not scored): what the
-  images cost when they are not even read, since LeRobot decodes the image of every frame it samples
-  for the batch (it loads every feature of a dataset).
+- `state_on_video` (timed only): the state model again on the video recording (`--policy.drop_features=
+  [observation.image]`): what the images cost when they are not even read, since LeRobot decodes the
+  image of every frame it samples for the batch (it loads every feature of a dataset).
 
 `ocn-eval` scores `state` and `images` on the validation split (NMI, F1, alignment; the image model
-has no env to act in: Craft's batch env gives states, so its free runs are not run). Throughput is
-read from each run's own log: frames trained per second = the episode frames in a step's loss
-(`frames_used`) over the step's update and data time (LeRobot's `updt_s`, `data_s`), over the log lines
-after the first; and per second of the whole run's wall time, start-up and the images' one decode
-included. Beside them, the image encoder's own cost (`encoder_timing`): forward and backward over a
+has no env to act in: Craft's batch env gives states, so its free runs are not run). Throughput comes
+from runs of their own, `--throughput-steps` steps of each of the three, back to back after the
+scored runs, so that the three share one machine's conditions (a long scored run may share the
+machine with other work for part of its hour). It is read from each timed run's log: frames trained
+per second = the episode frames in a step's loss (`frames_used`) over the step's update and data time
+(LeRobot's `updt_s`, `data_s`), over the log lines after the first; and per second of the whole run's
+wall time, start-up and the images' one decode included. Beside them, the image encoder's own cost (`encoder_timing`): forward and backward over a
 batch of frames, against the three 3 x 3 convolutions of stride 2 it replaced. Writes
 `results/bench_images.{json,md}`.
 """
@@ -52,26 +53,22 @@ RUNS = {
     "images": (VIDEO, "observation.state"),
     "state_on_video": (VIDEO, "observation.image"),
 }
-SCORED = ("state", "images")
+SCORED = ("state", "images")  # trained at the study's size and scored; every run is also timed
 SCORES = {"f1_tol0": "F1@0", "f1_tol1": "F1@1", "align_acc": "align", "nmi": "NMI"}
 LOG_LINE = re.compile(r"updt_s:([\d.]+) data_s:([\d.]+).*?frames_used:([\d.]+)")
 DECODED = re.compile(r"decoded .* in ([\d.]+) s")
 
 
-def train(args: argparse.Namespace, name: str, data: Recording) -> Training:
-    """One run (trained unless it is there): the plain command, plus the feature it drops, if any."""
+def train(args: argparse.Namespace, name: str, data: Recording, timed: bool = False) -> Training:
+    """One run (trained unless it is there): the plain command, plus the feature it drops, if any; `timed`:
+    the short run of `--throughput-steps` that measures its speed."""
     demos, dropped = RUNS[name]
-    folder = f"train/{demos.name}/ocn_{name}/seed{args.seed}"
-    command = train_command("ocn", data.root, demos.repo_id, folder, steps_of(args, name), args.batch_size, args.seed,
-                            {})
+    folder = f"train/{demos.name}/ocn_{name}{'_timed' if timed else ''}/seed{args.seed}"
+    command = train_command("ocn", data.root, demos.repo_id, folder, args.throughput_steps if timed else args.steps,
+                            args.batch_size, args.seed, {})
     if dropped:
         command.append(f"--policy.drop_features=[{dropped}]")
     return Training(args.workdir, folder, command).run()
-
-
-def steps_of(args: argparse.Namespace, name: str) -> int:
-    """A run's steps: the study's, or `--throughput-steps` for the run that is only measured."""
-    return args.steps if name in SCORED else args.throughput_steps
 
 
 def throughput(trained: Training, steps: int) -> dict[str, Any]:
@@ -129,8 +126,9 @@ def markdown(result: dict[str, Any]) -> str:
         "# Craft S1 from pixels: OCN on the rendered frames alone against OCN on the state", "",
         f"{origin_words(result)} Demonstrations: `record_demos --tasks AC,CD,DA --batch-size 16` with and without "
         f"`--video`, {settings['episodes_per_task']} per task, the same episodes; every model a plain `lerobot-train "
-        f"--policy.type=ocn` run of {settings['steps']} steps of {settings['batch_size']} episodes (`state_on_video`: "
-        f"{settings['throughput_steps']} steps), seed {settings['seed']}; scores: `ocn-eval` on the validation split. "
+        f"--policy.type=ocn` run of {settings['steps']} steps of {settings['batch_size']} episodes, seed "
+        f"{settings['seed']}; scores: `ocn-eval` on the validation split; throughput: a run of "
+        f"{settings['throughput_steps']} steps of each model, the three back to back after the scored runs. "
         f"Wall time {result['wall_s'] / 60:.0f} min.",
         "",
         *([f"**Reduced size**: {', '.join(smaller)}, to fit one shared CPU core; the full size is `ocn-reproduce "
@@ -151,6 +149,8 @@ def markdown(result: dict[str, Any]) -> str:
               "| run | frames per step | s per step | of it data s | frames/s | frames/s of wall time | "
               "images decoded once in s |", "|---|---|---|---|---|---|---|"]
     for name, row in rows.items():
+        if "throughput" not in row:
+            continue
         t = row["throughput"]
         decoded = "n/a" if t["images_decoded_s"] is None else f"{t['images_decoded_s']:.1f}"
         wall = "n/a" if t["frames_per_wall_s"] is None else f"{t['frames_per_wall_s']:.0f}"
@@ -186,19 +186,28 @@ def reproduce(args: argparse.Namespace) -> int:
     size = size_of(args)
     timing = encoder_timing()
     data = {demos.name: record(args.workdir, demos, size) for demos in (STATES, VIDEO)}
-    rows: dict[str, dict[str, Any]] = {}
-    for name, (demos, _) in RUNS.items():
-        trained = train(args, name, data[demos.name])
-        rows[name] = {"train_command": trained.shown, "throughput": throughput(trained, steps_of(args, name))}
-        if name in SCORED:
-            job = Evaluation(args.workdir, f"{trained.folder}/eval", trained.checkpoint, data[demos.name].root,
-                             demos.repo_id, args.rollouts).run()
-            scores = job.scores()
-            rows[name] |= {"eval_command": job.shown,
-                           "scores": {key: scores[key] for key in (*SCORES, "action_nll", "mean_success_rate")}}
+    rows: dict[str, dict[str, Any]] = {name: {} for name in RUNS}
+
+    def save() -> dict[str, Any]:
         result = {**provenance(args.argv, settings), "study": STUDY, "rows": rows, "checks": checks(rows),
                   "encoder_timing": timing, "wall_s": round(time.perf_counter() - started)}
         write(args.results, result)
+        return result
+
+    for name in SCORED:
+        demos = RUNS[name][0]
+        trained = train(args, name, data[demos.name])
+        job = Evaluation(args.workdir, f"{trained.folder}/eval", trained.checkpoint, data[demos.name].root,
+                         demos.repo_id, args.rollouts).run()
+        scores = job.scores()
+        rows[name] |= {"train_command": trained.shown, "train_wall_s": trained.wall_s, "eval_command": job.shown,
+                       "scores": {key: scores[key] for key in (*SCORES, "action_nll", "mean_success_rate")}}
+        save()
+    for name, (demos, _) in RUNS.items():
+        timed = train(args, name, data[demos.name], timed=True)
+        rows[name] |= {"timed_command": timed.shown,
+                       "throughput": throughput(timed, args.throughput_steps)}
+        result = save()
     print(markdown(result))
     return 0
 
@@ -219,7 +228,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_size_arguments(parser, SIZE)
     parser.set_defaults(seeds=[1])
     parser.add_argument("--throughput-steps", type=int, default=500,
-                        help="steps of the state model on the video recording, which is measured, not scored")
+                        help="steps of each model's timed run (the throughput table)")
     parser.add_argument("--rollouts", type=int, default=200,
                         help="ocn-eval env episodes per task and per option-table cell (the state model)")
     parser.add_argument("--results", type=Path, default=RESULTS, help="folder of bench_images.{json,md}")
