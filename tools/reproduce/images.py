@@ -24,9 +24,9 @@ scored runs, so that the three share one machine's conditions (a long scored run
 machine with other work for part of its hour). It is read from each timed run's log: frames trained
 per second = the episode frames in a step's loss (`frames_used`) over the step's update and data time
 (LeRobot's `updt_s`, `data_s`), over the log lines after the first; and per second of the whole run's
-wall time, start-up and the images' one decode included. Beside them, the image encoder's own cost (`encoder_timing`): forward and backward over a
-batch of frames, against the three 3 x 3 convolutions of stride 2 it replaced. Writes
-`results/bench_images.{json,md}`.
+wall time, start-up and the images' one decode included. Beside them, the image encoder's own cost
+(`encoder_timing`): forward and backward over a batch of frames, against the three 3 x 3
+convolutions of stride 2 it replaced. Writes `results/bench_images.{json,md}`.
 """
 
 from __future__ import annotations
