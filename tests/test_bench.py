@@ -151,7 +151,7 @@ def test_skills_runs_the_plain_commands_from_an_empty_folder(tmp_path):
     from lerobot_policy_ocn.tools.bench import skills
     from lerobot_policy_ocn.tools.bench.common import typed
 
-    args = argparse.Namespace(episodes_per_task=2, device="cpu")
+    args = argparse.Namespace(episodes_per_task=2, device="cpu", batch_size=128)
     commands = skills.plain_commands(tmp_path, 3, 2, args)
     assert {name: typed(command).replace(f"{tmp_path}/", "") for name, command in commands.items()} == {
         "record_demos": "record_demos --env craft --tasks AC,CD,DA --episodes-per-task 2 --root R --repo-id local/s1",

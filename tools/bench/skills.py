@@ -35,6 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int_list, default=[2000, 3000], help="lerobot-train --steps: each budget "
                         "is timed on every seed (the smallest that parses is the time to skills)")
     parser.add_argument("--episodes-per-task", type=int, default=2000, help="record_demos --episodes-per-task")
+    parser.add_argument("--batch-size", type=int, default=128, help="lerobot-train --batch_size")
     parser.add_argument("--seeds", type=int, default=3, help="seeds 1..N, each from an empty folder")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="lerobot-train --policy.device")
 
@@ -49,8 +50,8 @@ def plain_commands(folder: Path, seed: int, steps: int, args: argparse.Namespace
                          "--repo-id", REPO_ID],
         "lerobot-train": [console_script("lerobot-train"), "--policy.type=ocn", f"--policy.device={args.device}",
                           f"--dataset.repo_id={REPO_ID}", f"--dataset.root={root}", f"--steps={steps}",
-                          "--batch_size=128", f"--output_dir={out}", f"--seed={seed}", "--wandb.enable=false",
-                          "--policy.push_to_hub=false"],
+                          f"--batch_size={args.batch_size}", f"--output_dir={out}", f"--seed={seed}",
+                          "--wandb.enable=false", "--policy.push_to_hub=false"],
         "ocn-eval": [console_script("ocn-eval"), "--policy", str(out / "checkpoints" / "last" / "pretrained_model"),
                      "--root", str(root), "--repo-id", REPO_ID, "--out", str(folder / "M.json")],
     }
@@ -85,7 +86,8 @@ def fastest(runs: list[dict[str, Any]]) -> dict[str, Any] | None:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """The measurements; `ocn-bench` adds the provenance and writes the report (`markdown`)."""
     seeds = [time_to_skills(seed, steps, args) for steps in args.steps for seed in range(1, args.seeds + 1)]
-    return {"steps": args.steps, "fastest": fastest(seeds), "episodes_per_task": args.episodes_per_task,
+    return {"steps": args.steps, "batch_size": args.batch_size, "fastest": fastest(seeds),
+            "episodes_per_task": args.episodes_per_task,
             "device": args.device, "nmi_goal": NMI_GOAL, "ompn_release_wall_s": OMPN_RELEASE_WALL_S,
             "ompn_release_f1": OMPN_RELEASE_F1, "seeds": seeds}
 

@@ -6,16 +6,17 @@ default recipe), `ocn-eval` (parsing scores against the subtasks, the option x s
 success) and `ocn-view` (a rerun file and a PNG of the options over validation episodes). Then it
 prints the option x subtask table: each option, run alone, on each subtask.
 
-Its budget is the smallest measured to induce the three skills (results/bench_skills.md, `ocn-bench
-skills`): 2,000 demonstrations per task and 2,000 steps of 128 episodes split them on seeds 1 and 3
-(NMI 0.989 and 0.990) but not on seed 2 (0.516); 3,000 steps split all three (0.989-0.994) at 1.4x
-the time. Seed 1 is the default. Its wall time on 2 cores is results/bench_quickstart.md; the
-paper-size run is `ocn-reproduce imitation-s1`.
+Its budget, chosen to induce the three skills within the 4-minute goal: 2,000 demonstrations per
+task and 2,000 steps of 64 episodes, measured on seeds 1-3 by `ocn-bench skills --steps 2000 --batch-size 64`
+(results/bench_skills.md). A step of 64 episodes costs about half of one of 128, and at 128, 2,000
+steps failed seed 2 (NMI 0.516; results/archive/bench_skills_batch128_2026-12-07). Seed 1 is the
+default. Its wall time on 2 cores is results/bench_quickstart.md; the paper-size run is
+`ocn-reproduce imitation-s1`.
 
 Training runs with `--num_workers=0`: the policy holds the episodes in memory and reads only the
 sampled frames' episode indices, so LeRobot's data workers (4 by default) only take CPU from the
-update on a small machine. Measured on 2 cores, 250 steps of the quickstart's training: 0.145 s a
-step with no worker, 0.150 with 4 and 0.156 with 1, and 13 s less start-up than with 4.
+update on a small machine. Measured on 2 cores, 250 steps of the quickstart's training (then of 128
+episodes): 0.145 s a step with no worker, 0.150 with 4 and 0.156 with 1, and 13 s less start-up.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from lerobot_policy_ocn.tools import console_script
 
 EPISODES_PER_TASK = 2000
 STEPS = 2000
-BATCH_SIZE = 128
+BATCH_SIZE = 64
 REPO_ID = "local/craft_quickstart"
 
 
