@@ -7,11 +7,11 @@ success) and `ocn-view` (a rerun file and a PNG of the options over validation e
 prints the option x subtask table: each option, run alone, on each subtask.
 
 Its budget, chosen to induce the three skills within the 4-minute goal: 2,000 demonstrations per
-task and 2,000 steps of 64 episodes, measured on seeds 1-3 by `ocn-bench skills --steps 2000 --batch-size 64`
-(results/bench_skills.md). A step of 64 episodes costs about half of one of 128, and at 128, 2,000
-steps failed seed 2 (NMI 0.516; results/archive/bench_skills_batch128_2026-12-07). Seed 1 is the
-default. Its wall time on 2 cores is results/bench_quickstart.md; the paper-size run is
-`ocn-reproduce imitation-s1`.
+task and 2,000 steps of 64 episodes, a step costing about half of one of 128. `ocn-bench skills
+--steps 2000 --batch-size 64` (results/bench_skills.md) parsed seeds 1 and 3 (NMI 0.993, 0.999) and
+not seed 2 (0.735); at 128 episodes, 2,000 steps gave 0.989, 0.516 and 0.990
+(results/archive/bench_skills_batch128_2026-12-07). Seed 1 is the default. Its wall time on 2 cores
+is results/bench_quickstart.md; the paper-size run is `ocn-reproduce imitation-s1`.
 
 Training runs with `--num_workers=0`: the policy holds the episodes in memory and reads only the
 sampled frames' episode indices, so LeRobot's data workers (4 by default) only take CPU from the
