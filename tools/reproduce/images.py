@@ -25,8 +25,9 @@ machine with other work for part of its hour). It is read from each timed run's 
 per second = the episode frames in a step's loss (`frames_used`) over the step's update and data time
 (LeRobot's `updt_s`, `data_s`), over the log lines after the first; and per second of the whole run's
 wall time, start-up and the images' one decode included. Beside them, the image encoder's own cost
-(`encoder_timing`): forward and backward over a batch of frames, against the three 3 x 3
-convolutions of stride 2 it replaced. Writes `results/bench_images.{json,md}`.
+(`encoder_timing`): forward and backward over a batch of frames, with and without the training
+shift, against the three 3 x 3 convolutions of stride 2 it replaced. Writes
+`results/bench_images.{json,md}`.
 """
 
 from __future__ import annotations
@@ -93,8 +94,9 @@ ENCODER_FRAMES = 2600  # about a batch of 128 Craft S1 episodes
 
 def encoder_timing(repeats: int = 3) -> dict[str, Any]:
     """Seconds of one forward and backward pass over ENCODER_FRAMES random 40 x 40 frames, one thread, the
-    best of `repeats`: the policy's `ConvEncoder` and three 3 x 3 convolutions of stride 2 (16, 32, 32
-    channels) with its linear read-out, the design it replaced."""
+    best of `repeats`: the policy's `ConvEncoder` on the frames as they are and in training (each frame
+    shifted at random first), and three 3 x 3 convolutions of stride 2 (16, 32, 32 channels) with its
+    linear read-out, the design it replaced (the frames as they are)."""
     import torch
     from torch import nn
 
@@ -102,12 +104,15 @@ def encoder_timing(repeats: int = 3) -> dict[str, Any]:
 
     torch.set_num_threads(1)
     torch.manual_seed(0)
+    policy = ConvEncoder(3, 40)
     stacked = nn.Sequential(nn.Conv2d(3, 16, 3, 2, 1), nn.ReLU(), nn.Conv2d(16, 32, 3, 2, 1), nn.ReLU(),
                             nn.Conv2d(32, 32, 3, 2, 1), nn.ReLU(), nn.Flatten(), nn.Linear(32 * 5 * 5, 128), nn.ReLU())
     frames = torch.randint(0, 256, (ENCODER_FRAMES, 3, 40, 40)).float()
     timing = {}
-    for name, encoder in (("patch 4x4 stride 4, 3x3 stride 2 (the policy's)", ConvEncoder(3, 40)),
-                          ("three 3x3 stride 2", stacked)):
+    for name, encoder, training in (("patch 4x4 stride 4, 3x3 stride 2 (the policy's)", policy, False),
+                                    ("the policy's in training (each frame shifted at random)", policy, True),
+                                    ("three 3x3 stride 2", stacked, False)):
+        encoder.train(training)
         best = float("inf")
         for _ in range(repeats):
             started = time.perf_counter()
