@@ -35,7 +35,8 @@ def test_help_imports_neither_torch_nor_lerobot():
         "assert not heavy, heavy[:5]\n"
     )
     subprocess.run([sys.executable, "-c", script], check=True)
-    assert set(BENCHMARKS) == {"train", "ppo", "env", "dial", "stacked", "skills", "quickstart"}
+    assert set(BENCHMARKS) == {"train", "ppo", "env", "dial", "stacked", "first-layer", "skills",
+                               "quickstart"}
 
 
 def test_results_go_under_the_working_folder_with_date_machine_and_command(tmp_path, monkeypatch):
@@ -74,6 +75,35 @@ def test_stacked_writes_one_row_per_setting_against_the_goal_and_refuses_bad_lis
         with pytest.raises(SystemExit):
             main(["stacked", "--batch-sizes", bad, "--out", str(out)])
         assert "--batch-sizes" in capsys.readouterr().err
+
+
+def test_first_layer_times_each_way_on_the_same_policy_and_puts_the_policys_own_back(tmp_path, craft_dataset):
+    """Each variant runs the layer it names (the replaced `embedding_bag` backward, the dense features), the
+    policy's own comes back after it, and the report has one row per setting with the ratios of its times."""
+    import torch
+
+    from lerobot_policy_ocn.ocn.cell import sparse_rows_product
+    from lerobot_policy_ocn.tools.bench.models import dataset_policy, embedding_bag_product, first_layer
+
+    policy = dataset_policy(craft_dataset, CRAFT_REPO_ID, "cpu")
+    states = torch.zeros(2, 3, 81)
+    with first_layer(policy, "embedding_bag"):
+        assert policy.core.options.sparse_product is embedding_bag_product
+    with first_layer(policy, "dense"):
+        assert policy.encoder.sparse(states) is None
+    assert policy.core.options.sparse_product is sparse_rows_product
+    assert policy.encoder.sparse(states) is not None
+    out = tmp_path / "first_layer.json"
+    main(["first-layer", "--root", str(craft_dataset), "--batch-sizes", "2,3", "--threads", "1", "--rounds", "1",
+          "--block", "1", "--out", str(out)])
+    result = json.loads(out.read_text())
+    assert [(row["threads"], row["batch_size"]) for row in result["rows"]] == [(1, 2), (1, 3)]
+    report = out.with_suffix(".md").read_text()
+    for row in result["rows"]:
+        times = row["step_s"]
+        assert row["speedup"] == pytest.approx(times["embedding_bag"] / times["matmul_backward"])
+        assert f"| 1 | {row['batch_size']} | {times['embedding_bag'] * 1000:.1f} |" in report
+    assert result["dataset"]["recorded_by"] is None
 
 
 def test_ppo_times_each_part_of_an_iteration_with_a_checkpoints_options(tmp_path, ocn_checkpoint, capsys):

@@ -26,6 +26,32 @@ class SparseRows:
         return SparseRows(self.index[key], self.value[key])
 
 
+class _SparseRowsProduct(torch.autograd.Function):
+    """`SparseRows` (index, value [R, K]) times a weight [in, out]: the forward sums each row's weight rows
+    (`embedding_bag`); the backward forms the rows densely and takes the weight's gradient as one matmul.
+    On the CPU `embedding_bag`'s own backward sorts the indices first and costs about 3x more
+    (`ocn-bench first-layer`, results/bench_first_layer.md, times the whole training step both ways)."""
+
+    @staticmethod
+    def forward(ctx: Any, index: Tensor, value: Tensor, weight: Tensor) -> Tensor:
+        ctx.save_for_backward(index, value)
+        ctx.in_dim = weight.shape[0]
+        return torch.nn.functional.embedding_bag(index, weight, per_sample_weights=value, mode="sum")
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[None, None, Tensor | None]:
+        if not ctx.needs_input_grad[2]:
+            return None, None, None
+        index, value = ctx.saved_tensors
+        rows = grad.new_zeros(index.shape[0], ctx.in_dim).scatter_add_(1, index, value)
+        return None, None, rows.T @ grad
+
+
+def sparse_rows_product(index: Tensor, value: Tensor, weight: Tensor) -> Tensor:
+    """Rows given by their set entries (index, value [R, K]) times weight [in, out] -> [R, out]."""
+    return _SparseRowsProduct.apply(index, value, weight)
+
+
 class CellOutput(NamedTuple):
     """One step of N cells: raw output head `logits` [N, B, n_out], new state `hidden` [N, B, d_hid],
     termination probability `end` [N, B] (None for cells built without a termination head)."""
@@ -103,7 +129,10 @@ class StackedCell(nn.Module):
     The first MLP layer is split into an observation part and a recurrent part so that the
     observation part, which does not depend on the recurrence, can be computed for a whole window
     in one matmul (`project`) before the time loop; `step` then only does the recurrent work.
+    `sparse_product` computes that part for `SparseRows` inputs (`ocn-bench first-layer` swaps it).
     """
+
+    sparse_product = staticmethod(sparse_rows_product)
 
     def __init__(
         self,
@@ -144,8 +173,7 @@ class StackedCell(nn.Module):
             return stacked_linear(x, weight, self.b_in)
         n, _, width = self.b_in.shape
         entries = x.index.shape[-1]
-        flat = torch.nn.functional.embedding_bag(x.index.reshape(-1, entries), weight,
-                                                 per_sample_weights=x.value.reshape(-1, entries), mode="sum")
+        flat = self.sparse_product(x.index.reshape(-1, entries), x.value.reshape(-1, entries), weight)
         return flat.view(*x.index.shape[:-1], n, width).movedim(-2, -3) + self.b_in
 
     def step(self, x_proj: Tensor, h: Tensor) -> CellOutput:

@@ -2,8 +2,9 @@
 
 One module per benchmark (see tools/bench/README.md): `train` (OCN training in 1, 2, ... processes),
 `ppo` (PPO finetuning against the number of envs), `env` (Craft stepping and recording), `dial` (Dial's
-physics rate and expert), `stacked` (stacked option cells against a per-option loop), `skills` (the plain
-commands from an empty folder to an S1 model that parses) and `quickstart`. The modules import torch
+physics rate and expert), `stacked` (stacked option cells against a per-option loop), `first-layer`
+(the training step with each way of reading Craft's sparse features), `skills` (the plain commands from
+an empty folder to an S1 model that parses) and `quickstart`. The modules import torch
 and LeRobot only when they run, so that `--help` answers at once.
 """
 
@@ -14,7 +15,7 @@ import shlex
 import sys
 from types import ModuleType
 
-from lerobot_policy_ocn.tools.bench import dial, env, ppo, quickstart, skills, stacked, train
+from lerobot_policy_ocn.tools.bench import dial, env, first_layer, ppo, quickstart, skills, stacked, train
 from lerobot_policy_ocn.tools.bench.common import new_result, write
 
 BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
@@ -23,6 +24,7 @@ BENCHMARKS: dict[str, tuple[ModuleType, str]] = {
     "env": (env, "Craft env steps/s and record_demos frames/s"),
     "dial": (dial, "Dial env steps/s, its physics rate against bare mj_step, expert success"),
     "stacked": (stacked, "stacked option cells against a per-option loop, swept"),
+    "first-layer": (first_layer, "the training step with each way of reading Craft's sparse features"),
     "skills": (skills, "wall time from an empty folder to an S1 model with NMI >= 0.95, plain commands"),
     "quickstart": (quickstart, "ocn-quickstart's wall time and NMI against its goals"),
 }

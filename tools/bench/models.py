@@ -3,14 +3,18 @@ only when a benchmark runs (the benchmark modules themselves stay free of torch,
 
 `LoopedCell` is the baseline of the stacked option cells: the same parameter values held per module
 and evaluated one module at a time in a Python loop, i.e. what a list of per-option networks would cost.
+`first_layer` swaps the way the cells' first layer reads Craft's sparse features, for `first-layer`'s
+baselines.
 """
 
 from __future__ import annotations
 
 import copy
+import statistics
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -155,3 +159,80 @@ def compare_stacked_vs_loop(batch_size: int = 512, window: int = 32, n_options: 
             best["loop"] = max(best["loop"], frames / update_seconds(looped, batch, repeats=1))
     return {"stacked_frames_per_s": best["stacked"], "loop_frames_per_s": best["loop"],
             "speedup": best["stacked"] / best["loop"]}
+
+
+def dataset_policy(root: Path, repo_id: str, device: str, seed: int = 0) -> OCNPolicy:
+    """The default OCN as `lerobot-train` builds it from the dataset at `root` (every field resolved from the
+    dataset, its episodes in memory), initialised from `seed`, with its clock."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy
+
+    torch.manual_seed(seed)
+    meta = LeRobotDatasetMetadata(repo_id, root=root)
+    return on_clock(make_policy(OCNConfig(device=device), ds_meta=meta))
+
+
+def sampled_batch(policy: OCNPolicy, size: int, generator: torch.Generator) -> dict[str, Any]:
+    """A batch as LeRobot's sampler draws it from the dataset the policy was built from: `size` frames drawn
+    uniformly, each standing for its episode (the policy reads the episodes from its memory)."""
+    memory = policy._episodes
+    episode = torch.multinomial(memory.length.double(), size, replacement=True, generator=generator)
+    device = policy.config.device
+    return {OBS_STATE: torch.zeros(size, policy.config.state_dim, device=device),
+            ACTION: torch.zeros(size, 1, device=device), "episode_index": episode.to(device)}
+
+
+FIRST_LAYERS = ("matmul_backward", "embedding_bag", "dense")
+
+
+def embedding_bag_product(index: Tensor, value: Tensor, weight: Tensor) -> Tensor:
+    """`sparse_rows_product` with `embedding_bag`'s own backward, the implementation it replaced."""
+    return torch.nn.functional.embedding_bag(index, weight, per_sample_weights=value, mode="sum")
+
+
+@contextmanager
+def first_layer(policy: OCNPolicy, variant: str) -> Iterator[None]:
+    """Run the policy's first layer on Craft's features as `variant` (`FIRST_LAYERS`) says: the policy's own
+    (`sparse_rows_product`), `embedding_bag` both ways, or the dense 1,075-wide features both ways."""
+    cells = (policy.core.controller, policy.core.options)
+    if variant == "embedding_bag":
+        for cell in cells:
+            cell.sparse_product = embedding_bag_product
+    elif variant == "dense":
+        policy.encoder.sparse = lambda state: None
+    try:
+        yield
+    finally:
+        for owner in (*cells, policy.encoder):
+            vars(owner).pop("sparse_product", None)
+            vars(owner).pop("sparse", None)
+
+
+def compare_first_layers(policy: OCNPolicy, batch_size: int, rounds: int, block: int, seed: int = 0) -> dict[str, float]:
+    """Seconds of one training step (forward, backward, gradient clipping, Adam) of the policy with each
+    first layer (`FIRST_LAYERS`), on batches sampled from its dataset. The variants take turns, `block`
+    steps each after one untimed step, for `rounds` rounds; each variant's median block counts, so that
+    all of them see the same load and the same stage of training."""
+    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
+    policy.config.get_scheduler_preset().build(optimizer, CLOCK_STEPS)
+    clip = policy.config.get_optimizer_preset().grad_clip_norm
+    generator = torch.Generator().manual_seed(seed)
+    policy.train()
+
+    def train_step() -> None:
+        loss, _ = policy.forward(sampled_batch(policy, batch_size, generator))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), clip)
+        optimizer.step()
+
+    blocks: dict[str, list[float]] = {variant: [] for variant in FIRST_LAYERS}
+    for _ in range(rounds):
+        for variant in FIRST_LAYERS:
+            with first_layer(policy, variant):
+                train_step()
+                begin = time.perf_counter()
+                for _ in range(block):
+                    train_step()
+                blocks[variant].append((time.perf_counter() - begin) / block)
+    return {variant: statistics.median(times) for variant, times in blocks.items()}

@@ -191,24 +191,17 @@ def update_alone(root: Path, batch_sizes: list[int], device: str, threads: int, 
     the batch), and the sequential steps of that batch (its longest episode)."""
     import torch
 
-    import lerobot_policy_ocn  # noqa: F401  (registers `ocn` as LeRobot's CLIs do)
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-    from lerobot.policies.factory import make_policy
-    from lerobot.utils.constants import ACTION, OBS_STATE
-    from lerobot_policy_ocn.ocn import OCNConfig
-    from lerobot_policy_ocn.tools.bench.models import on_clock, torch_threads, update_seconds
+    from lerobot_policy_ocn.tools.bench.models import (dataset_policy, sampled_batch, torch_threads,
+                                                       update_seconds)
 
-    meta = LeRobotDatasetMetadata(REPO_ID, root=root)
     rows = []
     with torch_threads(threads):
-        torch.manual_seed(seed)
-        policy = on_clock(make_policy(OCNConfig(device=device), ds_meta=meta))
+        policy = dataset_policy(root, REPO_ID, device, seed)
         memory = policy._episodes
         frames = torch.Generator().manual_seed(seed)
         for size in batch_sizes:
-            episode = torch.multinomial(memory.length.double(), size, replacement=True, generator=frames)
-            batch = {OBS_STATE: torch.zeros(size, policy.config.state_dim, device=device),
-                     ACTION: torch.zeros(size, 1, device=device), "episode_index": episode.to(device)}
+            batch = sampled_batch(policy, size, frames)
+            episode = batch["episode_index"].cpu()
             trained = episode[memory.trainable[episode]]
             rows.append({"batch": size, "update_s": update_seconds(policy, batch),
                          "sequential_steps": int(memory.length[trained].max()) if len(trained) else 0})
