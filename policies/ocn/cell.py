@@ -29,7 +29,7 @@ class SparseRows:
 class _SparseRowsProduct(torch.autograd.Function):
     """`SparseRows` (index, value [R, K]) times a weight [in, out]: the forward sums each row's weight rows
     (`embedding_bag`); the backward forms the rows densely and takes the weight's gradient as one matmul.
-    On the CPU `embedding_bag`'s own backward sorts the indices first and costs about 3x more
+    On the CPU `embedding_bag`'s own backward sorts the indices first and is the slower of the two
     (`ocn-bench first-layer`, results/bench_first_layer.md, times the whole training step both ways)."""
 
     @staticmethod

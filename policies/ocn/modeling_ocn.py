@@ -145,9 +145,10 @@ class OCNPolicy(SequencePolicy, PreTrainedPolicy):
     def _training_features(self, state: Tensor, real: Tensor) -> Tensor | SparseRows:
         """The cell input of time-major states [T, B, W] for training: Craft's OMPN features as their set
         entries where the option cells read them (`SparseRows`: the first layer sums 140 weight rows instead
-        of multiplying 1,075 columns; results/bench_first_layer.md times the step both ways), else dense. Dense inputs encode the real frames ([T, B] `real`) alone, zeros elsewhere (the
-        core reads nothing else): an image encoder's cost follows the frames trained on, not the padding
-        of the batch's longest episode."""
+        of multiplying 1,075 columns; results/bench_first_layer.md times the step both ways), else dense.
+        Dense inputs encode the real frames ([T, B] `real`) alone, zeros elsewhere (the core reads nothing
+        else): an image encoder's cost follows the frames trained on, not the padding of the batch's
+        longest episode."""
         sparse = getattr(self.encoder, "sparse", None)
         rows = sparse(state) if sparse is not None and not self.config.decoder_latents else None
         if rows is not None:

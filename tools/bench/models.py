@@ -208,7 +208,8 @@ def first_layer(policy: OCNPolicy, variant: str) -> Iterator[None]:
             vars(owner).pop("sparse", None)
 
 
-def compare_first_layers(policy: OCNPolicy, batch_size: int, rounds: int, block: int, seed: int = 0) -> dict[str, float]:
+def compare_first_layers(policy: OCNPolicy, batch_size: int, rounds: int, block: int,
+                         seed: int = 0) -> dict[str, float]:
     """Seconds of one training step (forward, backward, gradient clipping, Adam) of the policy with each
     first layer (`FIRST_LAYERS`), on batches sampled from its dataset. The variants take turns, `block`
     steps each after one untimed step, for `rounds` rounds; each variant's median block counts, so that

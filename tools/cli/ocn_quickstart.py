@@ -8,10 +8,10 @@ prints the option x subtask table: each option, run alone, on each subtask.
 
 Its budget, chosen to induce the three skills within the 4-minute goal: 2,000 demonstrations per
 task and 2,000 steps of 64 episodes, a step costing about half of one of 128. `ocn-bench skills
---steps 2000 --batch-size 64` (results/bench_skills.md) parsed seeds 1 and 3 (NMI 0.993, 0.999) and
-not seed 2 (0.735); at 128 episodes, 2,000 steps gave 0.989, 0.516 and 0.990
-(results/archive/bench_skills_batch128_2026-12-07). Seed 1 is the default. Its wall time on 2 cores
-is results/bench_quickstart.md; the paper-size run is `ocn-reproduce imitation-s1`.
+--steps 2000,2500 --batch-size 64` (results/bench_skills.md) parsed seeds 1 and 3 at 2,000 steps
+(NMI 0.978, 0.997) and not seed 2 (0.829), and all three at 2,500, which would take the quickstart
+past 4 minutes. Seed 1 is the default. Its wall time on 2 cores is results/bench_quickstart.md; the
+paper-size run is `ocn-reproduce imitation-s1`.
 
 Training runs with `--num_workers=0`: the policy holds the episodes in memory and reads only the
 sampled frames' episode indices, so LeRobot's data workers (4 by default) only take CPU from the
