@@ -10,7 +10,9 @@ OCN live in test_lerobot_integration.py; the `compile` checkpoint comes from a 3
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -33,6 +35,7 @@ CRAFT_STATE = {"obs_encoder": "craft", "action_type": "discrete", "n_actions": 5
 # The Dial recipe caches its affine fits beside LeRobot's cache (`lerobot_policy_ocn.ocn.taught.split_cache_dir`): the
 # tests, and the processes they start, keep theirs in a folder of their own.
 os.environ["HF_LEROBOT_HOME"] = tempfile.mkdtemp(prefix="ocn_tests_lerobot_home_")
+atexit.register(shutil.rmtree, os.environ["HF_LEROBOT_HOME"], ignore_errors=True)
 DIAL_REPO_ID = "local/dial_ocn_test"
 
 

@@ -1,6 +1,7 @@
 """Bad inputs and outputs of ocn-eval, ocn-view, ocn-annotate and ocn-finetune: each is refused in
 one line that names the file (or id) and the fix, before anything is written; damaged checkpoints,
-checkpoints of another policy type, unwritable outputs, bad repo ids, and an existing ocn-eval result.
+checkpoints of another policy type, unwritable outputs, bad repo ids, and an existing ocn-eval result; and
+loading a checkpoint leaves no temporary file behind.
 Real checkpoint folders (conftest's untrained OCN, LeRobot's own ACT config), real tool entry points."""
 
 from __future__ import annotations
@@ -114,3 +115,16 @@ def test_ocn_eval_keeps_an_earlier_result_unless_forced(ocn_checkpoint, craft_da
     assert ocn_eval.main([*args, "--force"]) == 0
     assert json.loads(out.read_text())["episodes_parsed"] == 2
     assert png.read_bytes().startswith(b"\x89PNG")
+
+
+def test_loading_a_checkpoint_leaves_no_temporary_file(ocn_checkpoint):
+    """LeRobot's config loader writes a temporary JSON that it never deletes; `load_policy` points the temporary
+    folder at one of its own while it loads, removes it, and puts the temporary folder back."""
+    import tempfile
+
+    from lerobot_policy_ocn.tools.eval.parsing import load_policy
+
+    folder = tempfile.gettempdir()
+    before = set(Path(folder).iterdir())
+    load_policy(ocn_checkpoint)
+    assert tempfile.gettempdir() == folder and set(Path(folder).iterdir()) == before

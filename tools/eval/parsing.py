@@ -15,7 +15,9 @@ parse without any ground truth (option usage, segment lengths, switch rate).
 from __future__ import annotations
 
 import json
+import tempfile
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -113,6 +115,19 @@ def check_checkpoint_files(path: Path) -> None:
             raise ValueError(f"{file} is truncated or corrupt ({error}): copy the checkpoint again.") from None
 
 
+@contextmanager
+def scratch_tempdir() -> Iterator[None]:
+    """Temporary files go to a folder removed on exit: LeRobot's `PreTrainedConfig.from_pretrained` writes
+    the config it parses to a temporary JSON that it never deletes (one more in /tmp at every load)."""
+    previous = tempfile.tempdir
+    with tempfile.TemporaryDirectory(prefix="ocn_load_") as folder:
+        tempfile.tempdir = folder
+        try:
+            yield
+        finally:
+            tempfile.tempdir = previous
+
+
 def load_policy(
     path: Path, device: str = "cpu", types: Sequence[str] | None = None
 ) -> tuple[PreTrainedPolicy, Processor, Processor]:
@@ -136,7 +151,8 @@ def load_policy(
         raise ValueError(f"{path} holds an `{policy_type}` checkpoint; this tool needs an {wanted} one.")
     check_checkpoint_files(path)
     try:
-        config = PreTrainedConfig.from_pretrained(path)
+        with scratch_tempdir():
+            config = PreTrainedConfig.from_pretrained(path)
     except draccus.utils.DraccusException as error:
         raise ValueError(f"{path / 'config.json'} does not describe a `{policy_type}` policy: {error}") from None
     try:
