@@ -214,9 +214,9 @@ def compare_first_layers(policy: OCNPolicy, batch_size: int, rounds: int, block:
     first layer (`FIRST_LAYERS`), on batches sampled from its dataset. The variants take turns, `block`
     steps each after one untimed step, for `rounds` rounds; each variant's median block counts, so that
     all of them see the same load and the same stage of training."""
-    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
+    preset = policy.config.get_optimizer_preset()
+    optimizer = preset.build(policy.get_optim_params())
     policy.config.get_scheduler_preset().build(optimizer, CLOCK_STEPS)
-    clip = policy.config.get_optimizer_preset().grad_clip_norm
     generator = torch.Generator().manual_seed(seed)
     policy.train()
 
@@ -224,7 +224,7 @@ def compare_first_layers(policy: OCNPolicy, batch_size: int, rounds: int, block:
         loss, _ = policy.forward(sampled_batch(policy, batch_size, generator))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), clip)
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), preset.grad_clip_norm)
         optimizer.step()
 
     blocks: dict[str, list[float]] = {variant: [] for variant in FIRST_LAYERS}
